@@ -1,0 +1,10 @@
+// Registration functions of the parts of the `mlx3d._core` module.
+#pragma once
+
+#include <nanobind/nanobind.h>
+
+namespace mlx3d {
+
+void bind_knn(nanobind::module_& m);
+
+}  // namespace mlx3d
