@@ -1,0 +1,227 @@
+"""The ``mlx3d`` command line: inspect, compact, clean, transform and merge 3DGS PLY files.
+
+Exit codes: 0 success, 1 bad input or failed work (the message says what),
+2 bad command-line usage, 130 cancelled with Ctrl+C. Outputs are written
+atomically: a failed or cancelled run never leaves a partial file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+
+import numpy as np
+
+from .errors import Mlx3dError
+from .progress import ProgressLine, step
+
+
+def _sigmoid(x: np.ndarray) -> np.ndarray:
+    return 1.0 / (1.0 + np.exp(-x.astype(np.float64)))
+
+
+def _stats(values: np.ndarray) -> dict:
+    finite = values[np.isfinite(values)]
+    if finite.size == 0:
+        return {"min": None, "median": None, "mean": None, "max": None}
+    return {"min": float(finite.min()), "median": float(np.median(finite)), "mean": float(finite.mean()), "max": float(finite.max())}
+
+
+def ply_summary(path: str) -> dict:
+    """Facts about a splat file: count, SH degree, bounds, opacity/scale statistics, extras."""
+    import warnings
+
+    from .io.ply import read_splat_ply
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        arrays = read_splat_ply(path, nonfinite="keep")
+    finite_means = arrays.means[np.isfinite(arrays.means).all(axis=1)]
+    lo = finite_means.min(axis=0).tolist() if finite_means.size else None
+    hi = finite_means.max(axis=0).tolist() if finite_means.size else None
+    return {
+        "file": os.fspath(path),
+        "bytes": os.path.getsize(path),
+        "splats": arrays.count,
+        "sh_degree": arrays.sh_degree,
+        "bounds_min": lo,
+        "bounds_max": hi,
+        "opacity": _stats(_sigmoid(arrays.opacities)),
+        "scale_max_axis": _stats(np.exp(arrays.scales.max(axis=1).astype(np.float64))),
+        "extra": {name: str(values.dtype) for name, values in arrays.extra.items()},
+        "nonfinite_rows": arrays.nonfinite_rows,
+    }
+
+
+def _fmt(x) -> str:
+    return "-" if x is None else f"{x:.4g}"
+
+
+def _print_summary(s: dict) -> None:
+    def vec(v):
+        return "-" if v is None else "  ".join(f"{c:.4g}" for c in v)
+
+    rows = [
+        ("file", s["file"]),
+        ("size", f"{s['bytes'] / 1e6:.2f} MB"),
+        ("splats", f"{s['splats']:,}"),
+        ("SH degree", str(s["sh_degree"])),
+        ("bounds min", vec(s["bounds_min"])),
+        ("bounds max", vec(s["bounds_max"])),
+        ("opacity", "  ".join(f"{k} {_fmt(v)}" for k, v in s["opacity"].items())),
+        ("scale (max axis)", "  ".join(f"{k} {_fmt(v)}" for k, v in s["scale_max_axis"].items())),
+        ("extra properties", ", ".join(f"{k} ({t})" for k, t in s["extra"].items()) or "none"),
+        ("non-finite rows", str(s["nonfinite_rows"])),
+    ]
+    width = max(len(k) for k, _ in rows)
+    for key, value in rows:
+        print(f"{key:<{width}}  {value}")
+
+
+def _load(path: str, nonfinite: str):
+    from .splatting import GaussianModel
+
+    with step(f"reading {path}"):
+        model = GaussianModel.load_ply(path, sh_degree=None, nonfinite=nonfinite)
+    print(f"{path}: {len(model):,} splats, SH degree {model.sh_degree}")
+    return model
+
+
+def _save(model, path: str) -> None:
+    with step(f"writing {path}"):
+        model.save_ply(path)
+    print(f"{path}: {len(model):,} splats, SH degree {model.sh_degree}, {os.path.getsize(path) / 1e6:.2f} MB")
+
+
+def cmd_info(args) -> None:
+    for path in args.files:
+        summary = ply_summary(path)
+        if args.json:
+            print(json.dumps(summary, indent=2))
+        else:
+            _print_summary(summary)
+
+
+def cmd_compact(args) -> None:
+    model = _load(args.input, args.nonfinite)
+    out = model.compact(min_opacity=args.min_opacity, max_gaussians=args.max_gaussians, target_sh_degree=args.sh_degree)
+    print(f"compact: {len(model):,} -> {len(out):,} splats, SH degree {model.sh_degree} -> {out.sh_degree}")
+    _save(out, args.output)
+
+
+def cmd_clean(args) -> None:
+    from .floaters import radius_outliers, statistical_outliers
+
+    model = _load(args.input, args.nonfinite)
+    points = np.array(model.means, dtype=np.float32)
+    progress = ProgressLine("neighbour search")
+    if args.radius is not None:
+        result = radius_outliers(points, radius=args.radius, min_neighbours=args.min_neighbours, progress=progress)
+        rule = f"fewer than {args.min_neighbours} neighbours within radius {args.radius}"
+    else:
+        result = statistical_outliers(points, k=args.stat_k, std_ratio=args.stat_std, progress=progress)
+        rule = f"mean distance to {args.stat_k} nearest neighbours > {result.threshold:.4g} (mean + {args.stat_std} std)"
+    print(f"clean: removed {result.removed:,} of {len(model):,} splats ({rule})")
+    _save(model.copy().select(result.keep), args.output)
+
+
+def cmd_transform(args) -> None:
+    from .transforms import compose_affine
+
+    if len(args.scale) not in (1, 3):
+        raise Mlx3dError(f"--scale takes 1 or 3 values, got {len(args.scale)}")
+    matrix = compose_affine(args.scale if len(args.scale) == 3 else args.scale[0], args.rotate_deg, args.translate)
+    model = _load(args.input, args.nonfinite)
+    with step("transforming"):
+        out = model.transform(matrix)
+    _save(out, args.output)
+
+
+def cmd_merge(args) -> None:
+    from .splatting import merge
+
+    models = [_load(path, args.nonfinite) for path in args.inputs]
+    out = merge(models, sh_degree=args.sh_degree)
+    print(f"merge: {len(models)} files -> {len(out):,} splats, SH degree {out.sh_degree}")
+    _save(out, args.output)
+
+
+def cmd_demo(args) -> None:
+    from .demo import run_demo
+
+    run_demo(args.out)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="mlx3d", description="3D Gaussian Splatting tools on MLX.")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    def add(name, func, help_text):
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        p.set_defaults(func=func)
+        return p
+
+    def reading(p):
+        p.add_argument("--nonfinite", choices=("error", "drop", "keep"), default="error", help="rows with NaN/Inf: fail (default), drop them, or keep them")
+
+    p = add("info", cmd_info, "Summarise splat PLY files: count, SH degree, bounds, opacity and scale statistics, extra properties.")
+    p.add_argument("files", nargs="+", metavar="FILE.ply")
+    p.add_argument("--json", action="store_true", help="print JSON instead of a table")
+
+    p = add("compact", cmd_compact, "Keep the most important splats and/or truncate SH (importance = opacity * max scale^2).")
+    p.add_argument("input", metavar="IN.ply")
+    p.add_argument("output", metavar="OUT.ply")
+    p.add_argument("--max-gaussians", type=int, default=None, metavar="N", help="keep at most N splats")
+    p.add_argument("--min-opacity", type=float, default=0.0, metavar="X", help="drop splats with opacity below X (0..1)")
+    p.add_argument("--sh-degree", type=int, default=None, choices=(0, 1, 2, 3), metavar="D", help="truncate SH to degree D")
+    reading(p)
+
+    p = add("clean", cmd_clean, "Remove floaters: statistical outliers (default) or radius outliers.")
+    p.add_argument("input", metavar="IN.ply")
+    p.add_argument("output", metavar="OUT.ply")
+    p.add_argument("--stat-k", type=int, default=25, help="neighbours for the statistical rule (default 25)")
+    p.add_argument("--stat-std", type=float, default=10.5, help="standard deviations above the mean distance (default 10.5)")
+    p.add_argument("--radius", type=float, default=None, metavar="R", help="use the radius rule with this radius (scene units)")
+    p.add_argument("--min-neighbours", type=int, default=None, metavar="M", help="radius rule: minimum neighbours within R")
+    reading(p)
+
+    p = add("transform", cmd_transform, "Scale, rotate (Euler XYZ, degrees) and translate a splat file; SH colour rotates too.")
+    p.add_argument("input", metavar="IN.ply")
+    p.add_argument("output", metavar="OUT.ply")
+    p.add_argument("--scale", type=float, nargs="+", default=[1.0], metavar="S", help="uniform scale S, or three factors SX SY SZ")
+    p.add_argument("--rotate-deg", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("RX", "RY", "RZ"))
+    p.add_argument("--translate", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("X", "Y", "Z"))
+    reading(p)
+
+    p = add("merge", cmd_merge, "Merge splat files into one (SH padded to the highest degree unless --sh-degree).")
+    p.add_argument("output", metavar="OUT.ply")
+    p.add_argument("inputs", nargs="+", metavar="IN.ply")
+    p.add_argument("--sh-degree", type=int, default=None, choices=(0, 1, 2, 3), metavar="D")
+    reading(p)
+
+    p = add("demo", cmd_demo, "Run the built-in end-to-end demo on a generated scene.")
+    p.add_argument("--out", default="demo_out", metavar="DIR", help="output folder (default demo_out)")
+    return parser
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command == "clean":
+        if (args.radius is None) != (args.min_neighbours is None):
+            parser.error("clean: --radius and --min-neighbours go together")
+    try:
+        args.func(args)
+    except KeyboardInterrupt:
+        print("mlx3d: cancelled", file=sys.stderr)
+        return 130
+    except (Mlx3dError, ValueError, OSError) as exc:
+        print(f"mlx3d {args.command}: error: {exc}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,338 @@
+"""The Gaussian splat model: raw parameters as MLX arrays plus the per-splat
+extra properties a PLY file carried.
+
+Raw parameters (``model.params``), N splats, K = (degree + 1)² SH coefficients:
+
+==========  =========  ===============================================
+name        shape      meaning
+==========  =========  ===============================================
+means       (N, 3)     centres, scene units
+scales      (N, 3)     log standard deviations
+quats       (N, 4)     orientation w,x,y,z, not necessarily normalised
+opacities   (N,)       logits
+sh_dc       (N, 1, 3)  SH degree-0 coefficient per RGB channel
+sh_rest     (N, K-1,3) SH bands 1..degree, coefficient-major, channel last
+==========  =========  ===============================================
+
+``model.extra`` maps other PLY vertex properties (normals, ids, ...) to numpy
+arrays of shape (N,); every row operation (select, append, compact, merge)
+keeps them aligned so nothing of a file is lost on a round trip.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from typing import Iterable, Sequence
+
+import mlx.core as mx
+import numpy as np
+
+from ..errors import TransformError
+from ..io.ply import SplatArrays, read_splat_ply, write_splat_ply
+from ..transforms import split_affine, transform_gaussians, transform_normals
+from .sh import num_sh_bases, rgb_to_sh, rotate_sh, sh_degree_from_bases, sh_to_rgb
+
+PARAM_NAMES = ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest")
+NORMAL_NAMES = ("nx", "ny", "nz")
+
+
+def resize_sh_rest(sh_rest, degree: int):
+    """Truncate or zero-pad bands of ``sh_rest`` (N, K-1, 3) to ``degree`` (same array type)."""
+    target = num_sh_bases(degree) - 1
+    have = sh_rest.shape[1]
+    if target <= have:
+        return sh_rest[:, :target, :]
+    pad_shape = (sh_rest.shape[0], target - have, 3)
+    if isinstance(sh_rest, np.ndarray):
+        return np.concatenate([sh_rest, np.zeros(pad_shape, sh_rest.dtype)], axis=1)
+    return mx.concatenate([sh_rest, mx.zeros(pad_shape, dtype=sh_rest.dtype)], axis=1)
+
+
+def _as_index(keep, n: int) -> np.ndarray:
+    """Row indices (int64) from a boolean mask of length n or an integer index array."""
+    idx = np.asarray(keep)
+    if idx.dtype == np.bool_:
+        if idx.shape != (n,):
+            raise ValueError(f"boolean keep mask must have shape ({n},), got {idx.shape}")
+        return np.flatnonzero(idx)
+    if idx.ndim != 1 or not np.issubdtype(idx.dtype, np.integer) and idx.size:
+        raise ValueError(f"keep_idx must be a 1-D integer index or boolean mask, got dtype {idx.dtype} shape {idx.shape}")
+    idx = idx.astype(np.int64)
+    if idx.size and (idx.min() < -n or idx.max() >= n):
+        raise ValueError(f"keep_idx out of range for {n} Gaussians (min {idx.min()}, max {idx.max()})")
+    return idx % max(n, 1)
+
+
+class GaussianModel:
+    """A set of 3D Gaussians with SH colour. See the module docstring for the layout."""
+
+    def __init__(self, params: dict, extra: dict | None = None):
+        missing = [k for k in PARAM_NAMES if k not in params]
+        if missing:
+            raise ValueError(f"GaussianModel params missing {missing}")
+        self.params = {k: params[k] if isinstance(params[k], mx.array) else mx.array(np.asarray(params[k], np.float32)) for k in PARAM_NAMES}
+        n = self.params["means"].shape[0]
+        expected = {"means": (n, 3), "scales": (n, 3), "quats": (n, 4), "opacities": (n,), "sh_dc": (n, 1, 3)}
+        for key, shape in expected.items():
+            if tuple(self.params[key].shape) != shape:
+                raise ValueError(f"param '{key}' must have shape {shape}, got {tuple(self.params[key].shape)}")
+        rest = self.params["sh_rest"]
+        if rest.ndim != 3 or rest.shape[0] != n or rest.shape[2] != 3:
+            raise ValueError(f"param 'sh_rest' must have shape ({n}, K-1, 3), got {tuple(rest.shape)}")
+        sh_degree_from_bases(rest.shape[1] + 1)  # validates K
+        self.extra = {}
+        for name, values in (extra or {}).items():
+            values = np.asarray(values)
+            if values.shape != (n,):
+                raise ValueError(f"extra property '{name}' must have shape ({n},), got {values.shape}")
+            self.extra[name] = values
+
+    # ----------------------------------------------------------------- views
+    def __len__(self) -> int:
+        return self.params["means"].shape[0]
+
+    @property
+    def num_gaussians(self) -> int:
+        return len(self)
+
+    @property
+    def sh_degree(self) -> int:
+        return sh_degree_from_bases(self.params["sh_rest"].shape[1] + 1)
+
+    @property
+    def means(self) -> mx.array:
+        return self.params["means"]
+
+    @property
+    def scales(self) -> mx.array:
+        """(N,3) standard deviations (exp of the raw log scales)."""
+        return mx.exp(self.params["scales"])
+
+    @property
+    def quats(self) -> mx.array:
+        """(N,4) unit quaternions w,x,y,z."""
+        q = self.params["quats"]
+        return q / mx.maximum(mx.linalg.norm(q, axis=-1, keepdims=True), 1e-12)
+
+    @property
+    def opacities(self) -> mx.array:
+        """(N,) opacities in (0, 1) (sigmoid of the logits)."""
+        return mx.sigmoid(self.params["opacities"])
+
+    @property
+    def sh(self) -> mx.array:
+        """(N,K,3) all SH coefficients."""
+        return mx.concatenate([self.params["sh_dc"], self.params["sh_rest"]], axis=1)
+
+    @property
+    def colors(self) -> mx.array:
+        """(N,3) view-independent base colour (from the DC term)."""
+        return sh_to_rgb(self.params["sh_dc"][:, 0, :])
+
+    def __repr__(self) -> str:
+        return f"GaussianModel(n={len(self)}, sh_degree={self.sh_degree}, extra={list(self.extra)})"
+
+    # ----------------------------------------------------------- conversion
+    @classmethod
+    def from_arrays(cls, arrays: SplatArrays) -> "GaussianModel":
+        """Model from plain numpy arrays (as read from a PLY file)."""
+        return cls({k: mx.array(np.ascontiguousarray(getattr(arrays, k), dtype=np.float32)) for k in PARAM_NAMES}, arrays.extra)
+
+    def to_arrays(self) -> SplatArrays:
+        """Plain numpy copy of the raw parameters and extras."""
+        mx.eval(*self.params.values())
+        return SplatArrays(**{k: np.array(self.params[k], dtype=np.float32) for k in PARAM_NAMES}, extra={k: v.copy() for k, v in self.extra.items()})
+
+    @classmethod
+    def load_ply(cls, path, sh_degree: int | None = 3, nonfinite: str = "error") -> "GaussianModel":
+        """Read a 3DGS PLY file. ``sh_degree`` truncates or zero-pads the file's
+        SH (None keeps it); ``nonfinite`` is 'error', 'drop' or 'keep' for rows
+        with NaN/Inf. Raises ``PlyFormatError`` for bad files."""
+        return cls.from_arrays(read_splat_ply(path, sh_degree=sh_degree, nonfinite=nonfinite))
+
+    def save_ply(self, path) -> None:
+        """Write a standard binary 3DGS PLY (atomically; extras kept)."""
+        write_splat_ply(path, self.to_arrays())
+
+    # -------------------------------------------------------- construction
+    @classmethod
+    def from_points(
+        cls,
+        points,
+        colors=None,
+        sh_degree: int = 3,
+        initial_opacity: float = 0.1,
+        scale_init_max_ref: int = 10000,
+        scale_init_chunk_size: int = 1024,
+        scale_init_max_scale: float | None = None,
+        seed: int = 0,
+    ) -> "GaussianModel":
+        """Isotropic Gaussians at ``points`` (N,3).
+
+        colors: (N,3) RGB in [0,1] (floats) or 0..255 (uint8); grey when None.
+        Each scale is the mean distance to the 3 nearest other points among
+        at most ``scale_init_max_ref`` reference points (a seeded random
+        subset), computed ``scale_init_chunk_size`` queries at a time, then
+        capped at ``scale_init_max_scale`` when given.
+        """
+        from ..neighbors import mean_knn_distance
+
+        pts = np.ascontiguousarray(np.asarray(points), dtype=np.float32)
+        if pts.ndim != 2 or pts.shape[1] != 3:
+            raise ValueError(f"points must have shape (N, 3), got {pts.shape}")
+        n = pts.shape[0]
+        if n < 2:
+            raise ValueError(f"from_points needs at least 2 points to size the Gaussians, got {n}")
+        bad = ~np.isfinite(pts).all(axis=1)
+        if bad.any():
+            raise ValueError(f"points contain NaN/Inf in {int(bad.sum())} rows (first row {int(np.argmax(bad))})")
+        if not 0.0 < initial_opacity < 1.0:
+            raise ValueError(f"initial_opacity must be in (0, 1), got {initial_opacity}")
+        if scale_init_max_ref < 2:
+            raise ValueError(f"scale_init_max_ref must be >= 2, got {scale_init_max_ref}")
+        if colors is None:
+            rgb = np.full((n, 3), 0.5, np.float32)
+        else:
+            c = np.asarray(colors)
+            if c.shape != (n, 3):
+                raise ValueError(f"colors must have shape ({n}, 3), got {c.shape}")
+            rgb = c.astype(np.float32) / 255.0 if np.issubdtype(c.dtype, np.integer) else c.astype(np.float32)
+
+        if n > scale_init_max_ref:
+            ref_rows = np.sort(np.random.default_rng(seed).choice(n, scale_init_max_ref, replace=False))
+        else:
+            ref_rows = np.arange(n)
+        reference_index = np.full(n, -1, np.int64)
+        reference_index[ref_rows] = np.arange(ref_rows.size)
+        k = min(3, ref_rows.size - 1)
+        dist = mean_knn_distance(pts[ref_rows], k, queries=pts, reference_index=reference_index, chunk_size=scale_init_chunk_size)
+        dist = np.maximum(dist, 1e-7)
+        if scale_init_max_scale is not None:
+            dist = np.minimum(dist, scale_init_max_scale)
+        log_scale = np.repeat(np.log(dist)[:, None], 3, axis=1)
+
+        quats = np.zeros((n, 4), np.float32)
+        quats[:, 0] = 1.0
+        logit = math.log(initial_opacity / (1.0 - initial_opacity))
+        params = {
+            "means": pts,
+            "scales": log_scale.astype(np.float32),
+            "quats": quats,
+            "opacities": np.full(n, logit, np.float32),
+            "sh_dc": np.asarray(rgb_to_sh(rgb), np.float32)[:, None, :],
+            "sh_rest": np.zeros((n, num_sh_bases(sh_degree) - 1, 3), np.float32),
+        }
+        return cls({k: mx.array(v) for k, v in params.items()})
+
+    # ------------------------------------------------------- row operations
+    def copy(self) -> "GaussianModel":
+        """Independent copy (MLX arrays are immutable, so parameters are shared safely)."""
+        return GaussianModel(dict(self.params), {k: v.copy() for k, v in self.extra.items()})
+
+    def select(self, keep_idx) -> "GaussianModel":
+        """Keep rows given by a boolean mask (N,) or integer indices, in place; returns self."""
+        idx = _as_index(keep_idx, len(self))
+        midx = mx.array(idx)
+        self.params = {k: v[midx] for k, v in self.params.items()}
+        self.extra = {k: v[idx] for k, v in self.extra.items()}
+        return self
+
+    def append(self, new_params: dict, extra: dict | None = None) -> "GaussianModel":
+        """Append rows in place (same SH degree); extras missing from ``extra`` are zero-filled. Returns self."""
+        if set(new_params) != set(PARAM_NAMES):
+            raise ValueError(f"append needs exactly the params {list(PARAM_NAMES)}, got {sorted(new_params)}")
+        other = GaussianModel(new_params, None)
+        if other.sh_degree != self.sh_degree:
+            raise ValueError(f"append: SH degree {other.sh_degree} does not match the model's {self.sh_degree}")
+        m = len(other)
+        extra = extra or {}
+        unknown = set(extra) - set(self.extra)
+        if unknown:
+            raise ValueError(f"append: extra properties {sorted(unknown)} are not in the model")
+        for name, values in self.extra.items():
+            add = np.asarray(extra[name], values.dtype) if name in extra else np.zeros(m, values.dtype)
+            if add.shape != (m,):
+                raise ValueError(f"append: extra '{name}' must have shape ({m},), got {add.shape}")
+            self.extra[name] = np.concatenate([values, add])
+        self.params = {k: mx.concatenate([self.params[k], other.params[k]], axis=0) for k in PARAM_NAMES}
+        return self
+
+    def importance(self) -> np.ndarray:
+        """(N,) float32 ``sigmoid(opacity) * max(scale)²``: how much a splat covers."""
+        score = mx.sigmoid(self.params["opacities"]) * mx.exp(2.0 * mx.max(self.params["scales"], axis=1))
+        return np.array(score, dtype=np.float32)
+
+    def compact(self, min_opacity: float = 0.0, max_gaussians: int | None = None, target_sh_degree: int | None = None) -> "GaussianModel":
+        """A smaller copy: drop splats with opacity below ``min_opacity``, keep the
+        ``max_gaussians`` most important (see ``importance``), truncate SH to
+        ``target_sh_degree``. Kept rows stay in their original order; never empty
+        (the most important splat is kept); the model itself is unchanged."""
+        if max_gaussians is not None and max_gaussians < 1:
+            raise ValueError(f"max_gaussians must be >= 1, got {max_gaussians}")
+        if target_sh_degree is not None and target_sh_degree > self.sh_degree:
+            raise ValueError(f"target_sh_degree {target_sh_degree} exceeds the model's SH degree {self.sh_degree}")
+        score = self.importance()
+        opacity = np.array(self.opacities)
+        keep = np.flatnonzero(opacity >= min_opacity)
+        if keep.size == 0:
+            keep = np.array([int(np.argmax(score))])
+        if max_gaussians is not None and keep.size > max_gaussians:
+            # stable sort on -score: ties keep the earlier row
+            top = np.argsort(-score[keep], kind="stable")[:max_gaussians]
+            keep = np.sort(keep[top])
+        out = self.copy().select(keep)
+        if target_sh_degree is not None:
+            out.params["sh_rest"] = resize_sh_rest(out.params["sh_rest"], target_sh_degree)
+        return out
+
+    def with_sh_degree(self, degree: int) -> "GaussianModel":
+        """A copy with SH truncated or zero-padded to ``degree``."""
+        out = self.copy()
+        out.params["sh_rest"] = resize_sh_rest(out.params["sh_rest"], degree)
+        return out
+
+    # ------------------------------------------------------------ transform
+    def transform(self, matrix) -> "GaussianModel":
+        """A copy with the 4x4 affine ``matrix`` applied (object insertion).
+
+        Means map as points, each covariance Σ becomes L Σ Lᵀ (L = linear part,
+        non-uniform scale and shear included), SH bands rotate with the
+        orthogonal polar factor of L (reflections too), and normals in the
+        extras (nx, ny, nz) map by the inverse transpose. ``a.transform(A)
+        .transform(B)`` equals ``a.transform(B @ A)``."""
+        parts = split_affine(matrix)
+        arrays = self.to_arrays()
+        if not all(np.isfinite(getattr(arrays, k)).all() for k in ("means", "quats", "scales")):
+            raise TransformError("model has NaN/Inf means, quats or scales; cannot transform it")
+        arrays.means, arrays.quats, arrays.scales = transform_gaussians(matrix, arrays.means, arrays.quats, arrays.scales)
+        arrays.sh_rest = rotate_sh(arrays.sh_rest, parts.rotation)
+        if all(name in arrays.extra for name in NORMAL_NAMES):
+            normals = np.stack([arrays.extra[name] for name in NORMAL_NAMES], axis=1)
+            new = transform_normals(matrix, normals)
+            for i, name in enumerate(NORMAL_NAMES):
+                arrays.extra[name] = new[:, i].astype(arrays.extra[name].dtype)
+        return GaussianModel.from_arrays(arrays)
+
+
+def merge(models: Sequence[GaussianModel] | Iterable[GaussianModel], sh_degree: int | None = None) -> GaussianModel:
+    """One model from several, rows concatenated in order.
+
+    SH is padded with zeros to the highest degree present, or truncated/padded
+    to ``sh_degree`` when given. Extra properties are the union over models;
+    rows from a model without one are filled with zeros (a warning names them).
+    """
+    models = list(models)
+    if not models:
+        raise ValueError("merge needs at least one model")
+    degree = max(m.sh_degree for m in models) if sh_degree is None else sh_degree
+    names: dict[str, np.dtype] = {}
+    for m in models:
+        for name, values in m.extra.items():
+            names[name] = np.result_type(names[name], values.dtype) if name in names else values.dtype
+    partial = [name for name in names if any(name not in m.extra for m in models)]
+    if partial:
+        warnings.warn(f"merge: extra properties {partial} are missing in some inputs and are filled with 0 there", stacklevel=2)
+    params = {k: mx.concatenate([m.params[k] if k != "sh_rest" else resize_sh_rest(m.params[k], degree) for m in models], axis=0) for k in PARAM_NAMES}
+    extra = {name: np.concatenate([m.extra[name].astype(dtype) if name in m.extra else np.zeros(len(m), dtype) for m in models]) for name, dtype in names.items()}
+    return GaussianModel(params, extra)

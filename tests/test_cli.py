@@ -1,0 +1,117 @@
+"""The ``mlx3d`` command line: each subcommand's output files and exit codes."""
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+
+import mlx.core as mx
+import numpy as np
+import pytest
+
+from mlx3d.cli import main
+from mlx3d.splatting import GaussianModel, eval_sh
+from mlx3d.transforms import euler_to_matrix
+
+DATA = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data")
+OPENSPLAT = os.path.join(DATA, "opensplat_trained.ply")
+
+
+def make_file(path, n=400, degree=3, seed=0, floaters=0):
+    rng = np.random.default_rng(seed)
+    pts = rng.uniform(-1, 1, (n, 3))
+    pts[:, 2] = rng.normal(0, 0.01, n)  # a thin slab
+    if floaters:
+        d = rng.normal(size=(floaters, 3))
+        pts[-floaters:] = 20 * d / np.linalg.norm(d, axis=1, keepdims=True)
+    m = GaussianModel.from_points(pts.astype(np.float32), rng.uniform(0, 1, (n, 3)), sh_degree=degree)
+    m.params["sh_rest"] = mx.array(rng.normal(0, 0.1, tuple(m.params["sh_rest"].shape)).astype(np.float32))
+    m.params["opacities"] = mx.array(rng.normal(0, 2, n).astype(np.float32))
+    m.save_ply(path)
+    return m
+
+
+def test_info_json(tmp_path, capsys):
+    m = make_file(tmp_path / "a.ply", degree=2)
+    assert main(["info", "--json", str(tmp_path / "a.ply")]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["splats"] == 400 and info["sh_degree"] == 2
+    np.testing.assert_allclose(info["bounds_min"], np.array(m.means).min(0), rtol=1e-6)
+    np.testing.assert_allclose(info["opacity"]["max"], float(np.array(m.opacities).max()), rtol=1e-5)
+    assert info["nonfinite_rows"] == 0
+
+
+@pytest.mark.skipif(not os.path.exists(OPENSPLAT), reason="shared/data/opensplat_trained.ply not present")
+def test_info_table_on_real_file(capsys):
+    assert main(["info", OPENSPLAT]) == 0
+    out = capsys.readouterr().out
+    assert "31,995" in out and "SH degree" in out
+
+
+def test_compact(tmp_path):
+    make_file(tmp_path / "a.ply")
+    assert main(["compact", str(tmp_path / "a.ply"), str(tmp_path / "b.ply"), "--max-gaussians", "100", "--sh-degree", "1", "--min-opacity", "0.1"]) == 0
+    out = GaussianModel.load_ply(tmp_path / "b.ply", sh_degree=None)
+    assert len(out) == 100 and out.sh_degree == 1
+    assert (np.array(out.opacities) >= 0.1).all()
+
+
+def test_clean_statistical_and_radius(tmp_path, capsys):
+    make_file(tmp_path / "a.ply", n=2000, floaters=10)
+    assert main(["clean", str(tmp_path / "a.ply"), str(tmp_path / "b.ply"), "--stat-k", "10", "--stat-std", "3"]) == 0
+    assert "removed 10 of 2,000" in capsys.readouterr().out
+    kept = np.array(GaussianModel.load_ply(tmp_path / "b.ply").means)
+    assert len(kept) == 1990 and np.abs(kept).max() < 2
+    assert main(["clean", str(tmp_path / "a.ply"), str(tmp_path / "c.ply"), "--radius", "0.5", "--min-neighbours", "3"]) == 0
+    assert len(GaussianModel.load_ply(tmp_path / "c.ply")) == 1990
+
+
+def test_transform_rotates_positions_and_colour(tmp_path):
+    m = make_file(tmp_path / "a.ply")
+    args = ["transform", str(tmp_path / "a.ply"), str(tmp_path / "b.ply"), "--scale", "2", "--rotate-deg", "10", "20", "30", "--translate", "1", "2", "3"]
+    assert main(args) == 0
+    out = GaussianModel.load_ply(tmp_path / "b.ply")
+    rot = euler_to_matrix((10, 20, 30))
+    np.testing.assert_allclose(np.array(out.means), 2 * np.array(m.means) @ rot.T + [1, 2, 3], rtol=1e-5, atol=1e-5)
+    d = np.random.default_rng(0).normal(size=(8, 3))
+    np.testing.assert_allclose(
+        eval_sh(3, np.array(out.sh)[:, None].astype(np.float64), (d @ rot.T)[None]),
+        eval_sh(3, np.array(m.sh)[:, None].astype(np.float64), d[None]),
+        atol=1e-5,
+    )
+
+
+def test_merge_mixed_degrees(tmp_path):
+    make_file(tmp_path / "a.ply", n=50, degree=0)
+    make_file(tmp_path / "b.ply", n=60, degree=3, seed=1)
+    assert main(["merge", str(tmp_path / "m.ply"), str(tmp_path / "a.ply"), str(tmp_path / "b.ply")]) == 0
+    out = GaussianModel.load_ply(tmp_path / "m.ply", sh_degree=None)
+    assert len(out) == 110 and out.sh_degree == 3
+
+
+def test_bad_file_gives_message_and_exit_1_and_keeps_output(tmp_path, capsys):
+    (tmp_path / "bad.ply").write_bytes(b"not a ply at all")
+    (tmp_path / "out.ply").write_bytes(b"keep me")
+    assert main(["compact", str(tmp_path / "bad.ply"), str(tmp_path / "out.ply")]) == 1
+    err = capsys.readouterr().err
+    assert "bad.ply" in err and "error" in err
+    assert (tmp_path / "out.ply").read_bytes() == b"keep me"
+    assert main(["info", str(tmp_path / "missing.ply")]) == 1
+
+
+def test_usage_errors_exit_2(tmp_path):
+    with pytest.raises(SystemExit) as exc:
+        main(["clean", "a.ply", "b.ply", "--radius", "1"])
+    assert exc.value.code == 2
+    with pytest.raises(SystemExit) as exc:
+        main(["transform", "a.ply", "b.ply", "--rotate-deg", "1", "2"])
+    assert exc.value.code == 2
+
+
+@pytest.mark.parametrize("command", ["info", "compact", "clean", "transform", "merge", "demo"])
+def test_console_script_help(command):
+    exe = shutil.which("mlx3d", path=os.path.dirname(sys.executable))
+    cmd = [exe] if exe else [sys.executable, "-m", "mlx3d.cli"]
+    result = subprocess.run(cmd + [command, "--help"], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0 and "usage: mlx3d " + command in result.stdout
