@@ -15,6 +15,7 @@ import sys
 import numpy as np
 
 from .errors import Mlx3dError
+from .io.ply import NORMAL_NAMES
 from .progress import ProgressLine, step
 
 
@@ -50,7 +51,8 @@ def ply_summary(path: str) -> dict:
         "bounds_max": hi,
         "opacity": _stats(_sigmoid(arrays.opacities)),
         "scale_max_axis": _stats(np.exp(arrays.scales.max(axis=1).astype(np.float64))),
-        "extra": {name: str(values.dtype) for name, values in arrays.extra.items()},
+        "normals": all(name in arrays.extra for name in NORMAL_NAMES),
+        "extra": {name: str(values.dtype) for name, values in arrays.extra.items() if name not in NORMAL_NAMES},
         "nonfinite_rows": arrays.nonfinite_rows,
     }
 
@@ -72,6 +74,7 @@ def _print_summary(s: dict) -> None:
         ("bounds max", vec(s["bounds_max"])),
         ("opacity", "  ".join(f"{k} {_fmt(v)}" for k, v in s["opacity"].items())),
         ("scale (max axis)", "  ".join(f"{k} {_fmt(v)}" for k, v in s["scale_max_axis"].items())),
+        ("normals (nx ny nz)", "yes" if s["normals"] else "no"),
         ("extra properties", ", ".join(f"{k} ({t})" for k, t in s["extra"].items()) or "none"),
         ("non-finite rows", str(s["nonfinite_rows"])),
     ]

@@ -18,7 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from mlx3d import neighbors
-from mlx3d.neighbors import DEFAULT_CHUNK_SIZE, ProgressFn
+from mlx3d.neighbors import DEFAULT_CHUNK_SIZE
+from mlx3d.progress import ProgressFn
 
 __all__ = ["OutlierResult", "statistical_outliers", "radius_outliers"]
 

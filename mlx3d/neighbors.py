@@ -17,27 +17,24 @@ All argument errors raise ``ValueError`` (non-finite coordinates raise
 from __future__ import annotations
 
 import numbers
-from typing import Callable, Iterator, Optional
+from typing import Iterator
 
 import numpy as np
 
 from mlx3d import native
 from mlx3d.errors import NonFiniteError
+from mlx3d.progress import ProgressFn  # called after each chunk with the queries done so far
 
 __all__ = [
     "knn",
     "mean_knn_distance",
     "kth_knn_distance",
     "DEFAULT_CHUNK_SIZE",
-    "ProgressFn",
 ]
 
 DEFAULT_CHUNK_SIZE = 65536
 _LEAF_SIZE = 16
 
-#: Optional ``progress(done, total)`` callback, called after each chunk with
-#: the number of queries done so far.
-ProgressFn = Optional[Callable[[int, int], None]]
 
 
 # --------------------------------------------------------------------------- #

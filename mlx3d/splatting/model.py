@@ -29,12 +29,11 @@ import mlx.core as mx
 import numpy as np
 
 from ..errors import TransformError
-from ..io.ply import SplatArrays, read_splat_ply, write_splat_ply
+from ..io.ply import NORMAL_NAMES, SplatArrays, read_splat_ply, write_splat_ply
 from ..transforms import split_affine, transform_gaussians, transform_normals
 from .sh import num_sh_bases, rgb_to_sh, rotate_sh, sh_degree_from_bases, sh_to_rgb
 
 PARAM_NAMES = ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest")
-NORMAL_NAMES = ("nx", "ny", "nz")
 
 
 def resize_sh_rest(sh_rest, degree: int):
@@ -139,10 +138,17 @@ class GaussianModel:
         """Model from plain numpy arrays (as read from a PLY file)."""
         return cls({k: mx.array(np.ascontiguousarray(getattr(arrays, k), dtype=np.float32)) for k in PARAM_NAMES}, arrays.extra)
 
-    def to_arrays(self) -> SplatArrays:
-        """Plain numpy copy of the raw parameters and extras."""
+    def to_arrays(self, copy: bool = True) -> SplatArrays:
+        """The raw parameters and extras as numpy arrays; ``copy=False`` returns
+        read-only views of the MLX buffers (for writing them out)."""
         mx.eval(*self.params.values())
-        return SplatArrays(**{k: np.array(self.params[k], dtype=np.float32) for k in PARAM_NAMES}, extra={k: v.copy() for k, v in self.extra.items()})
+        if copy:
+            return SplatArrays(**{k: np.array(self.params[k], dtype=np.float32) for k in PARAM_NAMES}, extra={k: v.copy() for k, v in self.extra.items()})
+        views = {}
+        for k in PARAM_NAMES:
+            views[k] = np.asarray(self.params[k])
+            views[k].flags.writeable = False
+        return SplatArrays(**views, extra=dict(self.extra))
 
     @classmethod
     def load_ply(cls, path, sh_degree: int | None = 3, nonfinite: str = "error") -> "GaussianModel":
@@ -153,7 +159,7 @@ class GaussianModel:
 
     def save_ply(self, path) -> None:
         """Write a standard binary 3DGS PLY (atomically; extras kept)."""
-        write_splat_ply(path, self.to_arrays())
+        write_splat_ply(path, self.to_arrays(copy=False))
 
     # -------------------------------------------------------- construction
     @classmethod
