@@ -124,7 +124,11 @@ class AffineParts:
 
 
 def split_affine(matrix) -> AffineParts:
-    """Validate a 4x4 (or 3x4) affine matrix and split it; raises TransformError."""
+    """Validate a 4x4 (or 3x4) affine matrix and split it; raises TransformError.
+
+    An ``AffineParts`` passes through unchanged, so callers can split once."""
+    if isinstance(matrix, AffineParts):
+        return matrix
     m = np.asarray(matrix, dtype=np.float64)
     if m.shape not in ((4, 4), (3, 4)):
         raise TransformError(f"transform must be a 4x4 or 3x4 matrix, got shape {m.shape}")
@@ -145,7 +149,8 @@ def split_affine(matrix) -> AffineParts:
 def transform_gaussians(matrix, means, quats, log_scales):
     """Apply an affine map to Gaussians: means, orientations and log scales.
 
-    means (N,3), quats (N,4) w,x,y,z, log_scales (N,3). Each covariance
+    matrix: 4x4 affine or ``AffineParts``; means (N,3), quats (N,4) w,x,y,z,
+    log_scales (N,3). Each covariance
     Σ = R diag(s)² Rᵀ becomes L Σ Lᵀ. For a rotation times uniform scale the
     quaternion is left-multiplied by the rotation (its length kept) and log s
     is added; otherwise each covariance is rebuilt and re-decomposed by SVD

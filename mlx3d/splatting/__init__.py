@@ -1,6 +1,7 @@
 """Gaussian splat models and spherical harmonics (the ``mlx3d.splatting`` API)."""
 
-from .model import GaussianModel, merge, resize_sh_rest
+from .model import GaussianModel, merge
+from .ops import merge_splats, resize_sh_rest, transform_splats
 from .sh import (
     C0,
     MAX_SH_DEGREE,
@@ -20,6 +21,7 @@ __all__ = [
     "GaussianModel",
     "eval_sh",
     "merge",
+    "merge_splats",
     "num_sh_bases",
     "resize_sh_rest",
     "rgb_to_sh",
@@ -28,4 +30,5 @@ __all__ = [
     "sh_degree_from_bases",
     "sh_rotation",
     "sh_to_rgb",
+    "transform_splats",
 ]

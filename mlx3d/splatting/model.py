@@ -22,30 +22,16 @@ keeps them aligned so nothing of a file is lost on a round trip.
 from __future__ import annotations
 
 import math
-import warnings
 from typing import Iterable, Sequence
 
 import mlx.core as mx
 import numpy as np
 
-from ..errors import TransformError
-from ..io.ply import NORMAL_NAMES, SplatArrays, read_splat_ply, write_splat_ply
-from ..transforms import split_affine, transform_gaussians, transform_normals
-from .sh import num_sh_bases, rgb_to_sh, rotate_sh, sh_degree_from_bases, sh_to_rgb
+from ..io.ply import SplatArrays, read_splat_ply, write_splat_ply
+from .ops import merge_splats, resize_sh_rest, transform_splats
+from .sh import num_sh_bases, rgb_to_sh, sh_degree_from_bases, sh_to_rgb
 
 PARAM_NAMES = ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest")
-
-
-def resize_sh_rest(sh_rest, degree: int):
-    """Truncate or zero-pad bands of ``sh_rest`` (N, K-1, 3) to ``degree`` (same array type)."""
-    target = num_sh_bases(degree) - 1
-    have = sh_rest.shape[1]
-    if target <= have:
-        return sh_rest[:, :target, :]
-    pad_shape = (sh_rest.shape[0], target - have, 3)
-    if isinstance(sh_rest, np.ndarray):
-        return np.concatenate([sh_rest, np.zeros(pad_shape, sh_rest.dtype)], axis=1)
-    return mx.concatenate([sh_rest, mx.zeros(pad_shape, dtype=sh_rest.dtype)], axis=1)
 
 
 def _as_index(keep, n: int) -> np.ndarray:
@@ -300,45 +286,12 @@ class GaussianModel:
 
     # ------------------------------------------------------------ transform
     def transform(self, matrix) -> "GaussianModel":
-        """A copy with the 4x4 affine ``matrix`` applied (object insertion).
-
-        Means map as points, each covariance Σ becomes L Σ Lᵀ (L = linear part,
-        non-uniform scale and shear included), SH bands rotate with the
-        orthogonal polar factor of L (reflections too), and normals in the
-        extras (nx, ny, nz) map by the inverse transpose. ``a.transform(A)
-        .transform(B)`` equals ``a.transform(B @ A)``."""
-        parts = split_affine(matrix)
-        arrays = self.to_arrays()
-        if not all(np.isfinite(getattr(arrays, k)).all() for k in ("means", "quats", "scales")):
-            raise TransformError("model has NaN/Inf means, quats or scales; cannot transform it")
-        arrays.means, arrays.quats, arrays.scales = transform_gaussians(matrix, arrays.means, arrays.quats, arrays.scales)
-        arrays.sh_rest = rotate_sh(arrays.sh_rest, parts.rotation)
-        if all(name in arrays.extra for name in NORMAL_NAMES):
-            normals = np.stack([arrays.extra[name] for name in NORMAL_NAMES], axis=1)
-            new = transform_normals(matrix, normals)
-            for i, name in enumerate(NORMAL_NAMES):
-                arrays.extra[name] = new[:, i].astype(arrays.extra[name].dtype)
-        return GaussianModel.from_arrays(arrays)
+        """A copy with the 4x4 affine ``matrix`` applied (see ``ops.transform_splats``).
+        ``a.transform(A).transform(B)`` equals ``a.transform(B @ A)``."""
+        return GaussianModel.from_arrays(transform_splats(self.to_arrays(copy=False), matrix))
 
 
 def merge(models: Sequence[GaussianModel] | Iterable[GaussianModel], sh_degree: int | None = None) -> GaussianModel:
-    """One model from several, rows concatenated in order.
-
-    SH is padded with zeros to the highest degree present, or truncated/padded
-    to ``sh_degree`` when given. Extra properties are the union over models;
-    rows from a model without one are filled with zeros (a warning names them).
-    """
-    models = list(models)
-    if not models:
-        raise ValueError("merge needs at least one model")
-    degree = max(m.sh_degree for m in models) if sh_degree is None else sh_degree
-    names: dict[str, np.dtype] = {}
-    for m in models:
-        for name, values in m.extra.items():
-            names[name] = np.result_type(names[name], values.dtype) if name in names else values.dtype
-    partial = [name for name in names if any(name not in m.extra for m in models)]
-    if partial:
-        warnings.warn(f"merge: extra properties {partial} are missing in some inputs and are filled with 0 there", stacklevel=2)
-    params = {k: mx.concatenate([m.params[k] if k != "sh_rest" else resize_sh_rest(m.params[k], degree) for m in models], axis=0) for k in PARAM_NAMES}
-    extra = {name: np.concatenate([m.extra[name].astype(dtype) if name in m.extra else np.zeros(len(m), dtype) for m in models]) for name, dtype in names.items()}
-    return GaussianModel(params, extra)
+    """One model from several, rows concatenated in order (see ``ops.merge_splats``:
+    SH padded to the highest degree or set to ``sh_degree``, extras unioned)."""
+    return GaussianModel.from_arrays(merge_splats([m.to_arrays(copy=False) for m in models], sh_degree))
