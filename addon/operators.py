@@ -1,0 +1,251 @@
+"""Operators: thin wrappers that collect options, call ``workflows`` and report.
+
+Each operator validates its input, shows errors with ``self.report`` and
+returns CANCELLED without changing the scene; editing operators are undoable.
+"""
+
+from __future__ import annotations
+
+import os
+
+import bpy
+from bpy.props import BoolProperty, CollectionProperty, EnumProperty, FloatProperty, IntProperty, StringProperty
+from bpy_extras.io_utils import ExportHelper, ImportHelper
+
+from . import workflows
+from .splat_object import is_splat_object
+
+SH_ITEMS = [("FILE", "As in file", "Keep every SH coefficient of the file")] + [(str(d), f"Degree {d}", f"Truncate or zero-pad SH to degree {d}") for d in range(4)]
+KEEP_SH_ITEMS = [("KEEP", "Keep", "Keep the current SH degree")] + [(str(d), f"Degree {d}", f"Truncate SH to degree {d}") for d in range(4)]
+
+
+def _degree(value: str):
+    return None if value in ("FILE", "KEEP") else int(value)
+
+
+class _Progress:
+    """Window-manager progress (cursor/status bar) usable as ``progress(done, total)``."""
+
+    def __init__(self, context):
+        self.wm = context.window_manager
+
+    def __enter__(self):
+        self.wm.progress_begin(0, 100)
+        return self
+
+    def __call__(self, done, total):
+        self.wm.progress_update(int(100 * done / max(total, 1)))
+
+    def __exit__(self, *exc):
+        self.wm.progress_end()
+        return False
+
+
+def _report_all(op, messages, level="INFO"):
+    for message in messages:
+        op.report({"WARNING"} if "not exported" in message or "precision" in message else {level}, message)
+
+
+class IMPORT_SCENE_OT_gaussian_splat_ply(bpy.types.Operator, ImportHelper):
+    """Import 3D Gaussian Splatting PLY files as splat objects"""
+
+    bl_idname = "import_scene.gaussian_splat_ply"
+    bl_label = "Import Gaussian Splat (.ply)"
+    bl_options = {"REGISTER", "UNDO", "PRESET"}
+
+    filename_ext = ".ply"
+    filter_glob: StringProperty(default="*.ply", options={"HIDDEN"})
+    files: CollectionProperty(type=bpy.types.OperatorFileListElement, options={"HIDDEN", "SKIP_SAVE"})
+    directory: StringProperty(subtype="DIR_PATH", options={"HIDDEN", "SKIP_SAVE"})
+    sh_degree: EnumProperty(name="SH degree", items=SH_ITEMS, default="FILE", description="Cap the spherical-harmonics degree")
+    drop_nonfinite: BoolProperty(name="Drop NaN rows", default=False, description="Drop splats with NaN/Inf values instead of refusing the file")
+    at_cursor: BoolProperty(name="Place at 3D cursor", default=False)
+    axis: EnumProperty(name="Axes", items=workflows.AXIS_ITEMS, default="NONE", description="Axis convention of the file")
+
+    def paths(self):
+        if self.files and self.directory:
+            return [os.path.join(self.directory, f.name) for f in self.files if f.name]
+        return [self.filepath]
+
+    def execute(self, context):
+        if context.mode != "OBJECT":
+            bpy.ops.object.mode_set(mode="OBJECT")
+        location = tuple(context.scene.cursor.location) if self.at_cursor else None
+        imported = []
+        with _Progress(context) as progress:
+            for i, path in enumerate(self.paths()):
+                try:
+                    obj, messages = workflows.import_splat_file(
+                        path, sh_degree=_degree(self.sh_degree), drop_nonfinite=self.drop_nonfinite, axis=self.axis, location=location
+                    )
+                except (ValueError, OSError) as exc:
+                    self.report({"ERROR"}, str(exc))
+                    return {"CANCELLED"} if not imported else {"FINISHED"}
+                imported.append(obj)
+                _report_all(self, messages)
+                progress(i + 1, len(self.paths()))
+        for obj in context.selected_objects:
+            obj.select_set(False)
+        for obj in imported:
+            obj.select_set(True)
+        context.view_layer.objects.active = imported[-1]
+        return {"FINISHED"}
+
+
+class EXPORT_SCENE_OT_gaussian_splat_ply(bpy.types.Operator, ExportHelper):
+    """Export splat objects, with their transforms baked in, to one 3DGS PLY file"""
+
+    bl_idname = "export_scene.gaussian_splat_ply"
+    bl_label = "Export Gaussian Splat (.ply)"
+    bl_options = {"REGISTER", "PRESET"}
+
+    filename_ext = ".ply"
+    filter_glob: StringProperty(default="*.ply", options={"HIDDEN"})
+    use_selection: BoolProperty(name="Selected only", default=True, description="Export only selected splat objects (else all in the scene)")
+    axis: EnumProperty(name="Axes", items=workflows.AXIS_ITEMS, default="NONE", description="Axis convention to write")
+    sh_degree: EnumProperty(name="SH degree", items=SH_ITEMS, default="FILE", description="SH degree of the file (default: highest of the objects)")
+
+    def execute(self, context):
+        objects = context.selected_objects if self.use_selection else context.scene.objects
+        try:
+            _, messages = workflows.export_splat_file(self.filepath, objects, axis=self.axis, sh_degree=_degree(self.sh_degree))
+        except (ValueError, OSError) as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        _report_all(self, messages)
+        return {"FINISHED"}
+
+
+class _SplatEdit:
+    bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        return is_splat_object(context.active_object)
+
+    def run(self, context, func, *args, **kwargs):
+        if context.mode != "OBJECT":
+            bpy.ops.object.mode_set(mode="OBJECT")
+        try:
+            result = func(*args, **kwargs)
+        except (ValueError, OSError) as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        messages = result[1] if isinstance(result, tuple) else result
+        _report_all(self, messages)
+        return {"FINISHED"}
+
+
+class MLX3D_OT_merge_selected(_SplatEdit, bpy.types.Operator):
+    """Merge the selected splat objects into one new splat object, baking their transforms"""
+
+    bl_idname = "mlx3d.merge_selected"
+    bl_label = "Merge Selected Splats"
+
+    @classmethod
+    def poll(cls, context):
+        return len(workflows.splat_objects(context.selected_objects)) >= 2
+
+    def execute(self, context):
+        return self.run(context, workflows.merge_objects, context.selected_objects)
+
+
+class MLX3D_OT_apply_transform(_SplatEdit, bpy.types.Operator):
+    """Bake the active splat object's transform into its splats and reset it (positions, rotations, scales and SH)"""
+
+    bl_idname = "mlx3d.apply_transform"
+    bl_label = "Apply Transform to Splats"
+
+    def execute(self, context):
+        return self.run(context, workflows.apply_transform, context.active_object)
+
+
+class MLX3D_OT_crop_to_box(_SplatEdit, bpy.types.Operator):
+    """Keep or delete the splats inside the bounds of a mesh or empty"""
+
+    bl_idname = "mlx3d.crop_to_box"
+    bl_label = "Crop Splats to Box"
+
+    box: StringProperty(name="Box", description="Mesh or empty whose bounds define the box")
+    keep_inside: BoolProperty(name="Keep inside", default=True, description="Keep the splats inside (else delete them)")
+
+    def execute(self, context):
+        box = bpy.data.objects.get(self.box)
+        if box is None:
+            self.report({"ERROR"}, f"crop box object '{self.box}' not found")
+            return {"CANCELLED"}
+        return self.run(context, workflows.crop_to_box, context.active_object, box, keep_inside=self.keep_inside)
+
+
+class MLX3D_OT_remove_floaters(_SplatEdit, bpy.types.Operator):
+    """Remove isolated splats (statistical or radius outlier removal)"""
+
+    bl_idname = "mlx3d.remove_floaters"
+    bl_label = "Remove Floaters"
+
+    method: EnumProperty(
+        name="Method",
+        items=[("STATISTICAL", "Statistical", "Mean distance to k neighbours above mean + N std"), ("RADIUS", "Radius", "Fewer than M neighbours within R")],
+        default="STATISTICAL",
+    )
+    k: IntProperty(name="Neighbours", default=25, min=1)
+    std_ratio: FloatProperty(name="Std ratio", default=10.5, min=0.0)
+    radius: FloatProperty(name="Radius", default=0.05, min=0.0, subtype="DISTANCE")
+    min_neighbours: IntProperty(name="Min neighbours", default=4, min=1)
+
+    def execute(self, context):
+        with _Progress(context) as progress:
+            return self.run(
+                context, workflows.remove_floaters, context.active_object, method=self.method, k=self.k, std_ratio=self.std_ratio,
+                radius=self.radius, min_neighbours=self.min_neighbours, progress=progress,
+            )
+
+
+class MLX3D_OT_compact(_SplatEdit, bpy.types.Operator):
+    """Keep the most important splats and/or truncate SH (importance = opacity x max scale²)"""
+
+    bl_idname = "mlx3d.compact"
+    bl_label = "Compact Splats"
+
+    max_gaussians: IntProperty(name="Max splats", default=0, min=0, description="Keep at most this many splats (0: no limit)")
+    min_opacity: FloatProperty(name="Min opacity", default=0.0, min=0.0, max=1.0)
+    sh_degree: EnumProperty(name="SH degree", items=KEEP_SH_ITEMS, default="KEEP")
+
+    def execute(self, context):
+        return self.run(
+            context, workflows.compact_object, context.active_object, max_gaussians=self.max_gaussians or None,
+            min_opacity=self.min_opacity, sh_degree=_degree(self.sh_degree),
+        )
+
+
+class MLX3D_FH_gaussian_splat_ply(bpy.types.FileHandler):
+    """Drag and drop .ply files onto the 3D viewport to import them as splats"""
+
+    bl_idname = "MLX3D_FH_gaussian_splat_ply"
+    bl_label = "Gaussian Splat (.ply)"
+    bl_import_operator = IMPORT_SCENE_OT_gaussian_splat_ply.bl_idname
+    bl_file_extensions = ".ply"
+
+    @classmethod
+    def poll_drop(cls, context):
+        return context.area is not None and context.area.type == "VIEW_3D"
+
+
+def menu_import(self, context):
+    self.layout.operator(IMPORT_SCENE_OT_gaussian_splat_ply.bl_idname, text="Gaussian Splat (.ply)")
+
+
+def menu_export(self, context):
+    self.layout.operator(EXPORT_SCENE_OT_gaussian_splat_ply.bl_idname, text="Gaussian Splat (.ply)")
+
+
+CLASSES = (
+    IMPORT_SCENE_OT_gaussian_splat_ply,
+    EXPORT_SCENE_OT_gaussian_splat_ply,
+    MLX3D_OT_merge_selected,
+    MLX3D_OT_apply_transform,
+    MLX3D_OT_crop_to_box,
+    MLX3D_OT_remove_floaters,
+    MLX3D_OT_compact,
+    MLX3D_FH_gaussian_splat_ply,
+)

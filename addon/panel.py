@@ -1,0 +1,99 @@
+"""The N-panel ("Splats" tab in the 3D viewport sidebar) and its scene settings."""
+
+from __future__ import annotations
+
+import bpy
+from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty
+
+from . import operators, workflows
+from .splat_object import is_splat_object
+
+
+class MLX3D_PG_settings(bpy.types.PropertyGroup):
+    """Panel parameters, stored with the scene."""
+
+    crop_box: PointerProperty(name="Box", type=bpy.types.Object, poll=lambda self, obj: obj.type in {"MESH", "EMPTY"})
+    crop_keep_inside: BoolProperty(name="Keep inside", default=True)
+    floater_method: EnumProperty(name="Method", items=[("STATISTICAL", "Statistical", ""), ("RADIUS", "Radius", "")], default="STATISTICAL")
+    floater_k: IntProperty(name="Neighbours", default=25, min=1)
+    floater_std: FloatProperty(name="Std ratio", default=10.5, min=0.0)
+    floater_radius: FloatProperty(name="Radius", default=0.05, min=0.0, subtype="DISTANCE")
+    floater_min_neighbours: IntProperty(name="Min neighbours", default=4, min=1)
+    compact_max: IntProperty(name="Max splats", default=0, min=0, description="0: no limit")
+    compact_min_opacity: FloatProperty(name="Min opacity", default=0.0, min=0.0, max=1.0)
+    compact_sh: EnumProperty(name="SH degree", items=operators.KEEP_SH_ITEMS, default="KEEP")
+
+
+_info_cache: dict = {}
+
+
+def _cached_info(obj) -> dict:
+    key = (obj.name, obj.data.name, len(obj.data.points), tuple(map(tuple, obj.matrix_world)))
+    if key not in _info_cache:
+        _info_cache.clear()
+        _info_cache[key] = workflows.splat_info(obj)
+    return _info_cache[key]
+
+
+class VIEW3D_PT_mlx3d_splats(bpy.types.Panel):
+    bl_label = "Gaussian Splats"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "Splats"
+
+    def draw(self, context):
+        layout = self.layout
+        settings = context.scene.mlx3d_splats
+        row = layout.row(align=True)
+        row.operator(operators.IMPORT_SCENE_OT_gaussian_splat_ply.bl_idname, text="Import", icon="IMPORT")
+        row.operator(operators.EXPORT_SCENE_OT_gaussian_splat_ply.bl_idname, text="Export", icon="EXPORT")
+
+        obj = context.active_object
+        box = layout.box()
+        if is_splat_object(obj):
+            info = _cached_info(obj)
+            box.label(text=obj.name, icon="POINTCLOUD_DATA")
+            box.label(text=f"Splats: {info['count']:,}   SH degree: {info['sh_degree']}")
+            box.label(text=f"Memory: {info['memory_bytes'] / 1e6:.1f} MB")
+            lo, hi = info["bounds_min"], info["bounds_max"]
+            if lo is not None:
+                box.label(text="Min: " + "  ".join(f"{v:.3g}" for v in lo))
+                box.label(text="Max: " + "  ".join(f"{v:.3g}" for v in hi))
+        else:
+            box.label(text="No splat object active")
+
+        col = layout.column(align=True)
+        col.label(text="Compose")
+        col.operator(operators.MLX3D_OT_merge_selected.bl_idname, icon="AUTOMERGE_ON")
+        col.operator(operators.MLX3D_OT_apply_transform.bl_idname, icon="OBJECT_ORIGIN")
+        col.prop(settings, "crop_box")
+        col.prop(settings, "crop_keep_inside")
+        sub = col.row()
+        sub.enabled = settings.crop_box is not None
+        op = sub.operator(operators.MLX3D_OT_crop_to_box.bl_idname, icon="MOD_BOOLEAN")
+        op.box = settings.crop_box.name if settings.crop_box else ""
+        op.keep_inside = settings.crop_keep_inside
+
+        col = layout.column(align=True)
+        col.label(text="Clean")
+        col.prop(settings, "floater_method", text="")
+        if settings.floater_method == "STATISTICAL":
+            col.prop(settings, "floater_k")
+            col.prop(settings, "floater_std")
+        else:
+            col.prop(settings, "floater_radius")
+            col.prop(settings, "floater_min_neighbours")
+        op = col.operator(operators.MLX3D_OT_remove_floaters.bl_idname, icon="BRUSH_DATA")
+        op.method, op.k, op.std_ratio = settings.floater_method, settings.floater_k, settings.floater_std
+        op.radius, op.min_neighbours = settings.floater_radius, settings.floater_min_neighbours
+
+        col = layout.column(align=True)
+        col.label(text="Compact")
+        col.prop(settings, "compact_max")
+        col.prop(settings, "compact_min_opacity")
+        col.prop(settings, "compact_sh")
+        op = col.operator(operators.MLX3D_OT_compact.bl_idname, icon="MOD_DECIM")
+        op.max_gaussians, op.min_opacity, op.sh_degree = settings.compact_max, settings.compact_min_opacity, settings.compact_sh
+
+
+CLASSES = (MLX3D_PG_settings, VIEW3D_PT_mlx3d_splats)
