@@ -64,11 +64,13 @@ class SplatObjectError(ValueError):
 
 
 # --------------------------------------------------------------------------- attributes
-def _get(attributes, name: str, n: int) -> np.ndarray:
+def _get(attributes, name: str, n: int, out: np.ndarray | None = None) -> np.ndarray:
+    """Attribute values as (n,) or (n, components); ``out`` is a contiguous buffer to fill."""
     attr = attributes[name]
     comps, key, dtype = _LAYOUT[attr.data_type]
-    out = np.empty(n * comps, dtype=dtype)
-    attr.data.foreach_get(key, out)
+    if out is None:
+        out = np.empty(n * comps, dtype=dtype)
+    attr.data.foreach_get(key, out.reshape(-1))
     return out.reshape(n, comps) if comps > 1 else out
 
 
@@ -129,14 +131,16 @@ def _read_raw(attributes, n, means, name):
     if rest_ids != list(range(len(rest_ids))) or len(rest_ids) not in (0, 9, 24, 45):
         raise SplatObjectError(f"'{name}': f_rest attributes must be f_rest_0..f_rest_{{8, 23 or 44}}, found {len(rest_ids)} ({rest_ids[:3]}...)")
     k1 = len(rest_ids) // 3
-    rest = np.stack([_get(attributes, f"f_rest_{i}", n) for i in rest_ids], axis=1) if k1 else np.zeros((n, 0), np.float32)
+    rest = np.empty((3 * k1, n), np.float32)  # one row per f_rest_i: channel-major like the file
+    for i in rest_ids:
+        _get(attributes, f"f_rest_{i}", n, out=rest[i])
     arrays = SplatArrays(
         means=means,
         scales=_get(attributes, "log_scale", n),
         quats=_get(attributes, "rot", n),
         opacities=_get(attributes, "opacity", n),
         sh_dc=_get(attributes, "f_dc", n)[:, None, :],
-        sh_rest=np.ascontiguousarray(rest.reshape(n, 3, k1).transpose(0, 2, 1)),
+        sh_rest=np.ascontiguousarray(rest.reshape(3, k1, n).transpose(2, 1, 0)),
     )
     return arrays, set(RAW_ATTRIBUTES) | {f"f_rest_{i}" for i in rest_ids}
 

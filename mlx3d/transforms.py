@@ -146,37 +146,53 @@ def split_affine(matrix) -> AffineParts:
     return AffineParts(linear, translation, rotation, uniform)
 
 
-def transform_gaussians(matrix, means, quats, log_scales):
+def transform_gaussians(matrix, means, quats, log_scales, *, backend: str = "auto"):
     """Apply an affine map to Gaussians: means, orientations and log scales.
 
     matrix: 4x4 affine or ``AffineParts``; means (N,3), quats (N,4) w,x,y,z,
-    log_scales (N,3). Each covariance
-    Σ = R diag(s)² Rᵀ becomes L Σ Lᵀ. For a rotation times uniform scale the
-    quaternion is left-multiplied by the rotation (its length kept) and log s
-    is added; otherwise each covariance is rebuilt and re-decomposed by SVD
-    of ``L R diag(s)`` (scales then come out sorted, quaternions normalised).
-    Reflections are handled: the covariance of a reflected Gaussian equals the
-    one of its rotation by ``-rotation``, a proper rotation in 3D.
+    log_scales (N,3). Each covariance Σ = R diag(s)² Rᵀ becomes L Σ Lᵀ. For a
+    rotation times uniform scale the quaternion is left-multiplied by the
+    rotation (its length kept) and log s is added; otherwise each covariance is
+    re-decomposed from an SVD of ``L R diag(s)`` (scales then come out sorted
+    descending, quaternions normalised). Reflections are handled: a reflected
+    Gaussian's covariance equals its rotation by ``-rotation``, a proper
+    rotation in 3D. backend: 'native' (threaded C++ in ``mlx3d._core``),
+    'numpy' (the reference) or 'auto' (native when the extension loads).
     Returns float32 (means, quats, log_scales); see ``AffineParts`` for the SH rotation.
     """
+    if backend not in ("auto", "native", "numpy"):
+        raise ValueError(f"backend must be 'auto', 'native' or 'numpy', got {backend!r}")
     parts = split_affine(matrix)
-    means64 = np.asarray(means, dtype=np.float64)
-    new_means = means64 @ parts.linear.T + parts.translation
-    q = np.asarray(quats, dtype=np.float64)
-    ls = np.asarray(log_scales, dtype=np.float64)
+    new_means = (np.asarray(means, dtype=np.float64) @ parts.linear.T + parts.translation).astype(np.float32)
     if parts.uniform_scale is not None:
         proper = parts.rotation if np.linalg.det(parts.rotation) > 0 else -parts.rotation
-        qr = matrix_to_quaternion(proper)
-        new_quats = quaternion_multiply(np.broadcast_to(qr, q.shape), q)
-        new_scales = ls + np.log(parts.uniform_scale)
-    else:
-        rot = quaternion_to_matrix(q)
-        m = parts.linear @ rot * np.exp(ls)[:, None, :]
-        u, sv, _ = np.linalg.svd(m)
-        u[np.linalg.det(u) < 0, :, 2] *= -1.0
-        new_quats = matrix_to_quaternion(u)
-        new_scales = np.log(np.maximum(sv, np.finfo(np.float64).tiny))
-    return new_means.astype(np.float32), new_quats.astype(np.float32), new_scales.astype(np.float32)
+        q = np.asarray(quats, dtype=np.float64)
+        new_quats = quaternion_multiply(np.broadcast_to(matrix_to_quaternion(proper), q.shape), q).astype(np.float32)
+        new_scales = (np.asarray(log_scales, dtype=np.float64) + np.log(parts.uniform_scale)).astype(np.float32)
+        return new_means, new_quats, new_scales
+    if backend != "numpy":
+        from . import native
+
+        if backend == "native" or native.available():
+            return (new_means, *_covariances_native(native.core(), parts.linear, quats, log_scales))
+    return (new_means, *_covariances_numpy(parts.linear, quats, log_scales))
+
+
+def _covariances_native(core, linear, quats, log_scales):
+    q = np.ascontiguousarray(quats, dtype=np.float32)
+    s = np.ascontiguousarray(log_scales, dtype=np.float32)
+    q_out, s_out = np.empty_like(q), np.empty_like(s)
+    core.affine_covariances(np.ascontiguousarray(linear, dtype=np.float64), q, s, q_out, s_out)
+    return q_out, s_out
+
+
+def _covariances_numpy(linear, quats, log_scales):
+    rot = quaternion_to_matrix(np.asarray(quats, dtype=np.float64))
+    m = linear @ rot * np.exp(np.asarray(log_scales, dtype=np.float64))[:, None, :]
+    u, sv, _ = np.linalg.svd(m)
+    u[np.linalg.det(u) < 0, :, 2] *= -1.0
+    new_scales = np.log(np.maximum(sv, np.finfo(np.float64).tiny))
+    return matrix_to_quaternion(u).astype(np.float32), new_scales.astype(np.float32)
 
 
 def transform_normals(matrix, normals: np.ndarray) -> np.ndarray:

@@ -158,3 +158,31 @@ def test_normals_use_inverse_transpose():
 def test_bad_transforms_are_refused(matrix, words):
     with pytest.raises(TransformError, match=words):
         transform_gaussians(matrix, *random_gaussians(3))
+
+
+@pytest.mark.parametrize("name", ["nonuniform", "shear", "mirror_scaled"])
+def test_native_kernel_matches_numpy_reference_on_hard_cases(name):
+    a = AFFINES[name] @ compose_affine((1.0, 1.0, 1.0 + 1e-9), (0, 0, 0), (0, 0, 0))  # force the general path
+    rng = np.random.default_rng(7)
+    n = 3000
+    quats = rng.normal(size=(n, 4))
+    log_scales = rng.normal(-2, 1, size=(n, 3))
+    log_scales[:500, 2] = np.log(1e-8)  # flat disks
+    log_scales[500:1000] = -3.0  # isotropic: any eigenbasis is right
+    log_scales[1000:1500] = [4.0, 4.0, -12.0]  # huge and tiny at once
+    quats[1500:1600] = 0.0  # zero quaternion (treated as identity-like, finite)
+    quats[1500:1600, 0] = 1e-30
+    ref = transform_gaussians(a, np.zeros((n, 3)), quats, log_scales, backend="numpy")
+    nat = transform_gaussians(a, np.zeros((n, 3)), quats, log_scales, backend="native")
+    assert np.isfinite(nat[1]).all() and np.isfinite(nat[2]).all()
+    np.testing.assert_allclose(np.linalg.norm(nat[1], axis=1), 1.0, atol=1e-6)
+    c_ref, c_nat = covariances(*ref[1:]), covariances(*nat[1:])
+    rel = np.linalg.norm(c_nat - c_ref, axis=(1, 2)) / np.linalg.norm(c_ref, axis=(1, 2))
+    assert rel.max() < 1e-5
+    # the smallest scale keeps its relative precision (no squaring of the covariance)
+    np.testing.assert_allclose(np.sort(nat[2], axis=1), np.sort(ref[2], axis=1), atol=1e-5)
+
+
+def test_unknown_backend_is_refused():
+    with pytest.raises(ValueError, match="backend"):
+        transform_gaussians(np.eye(4), *random_gaussians(2), backend="gpu")

@@ -361,8 +361,11 @@ def rotate_sh(sh_rest, R):
     The degree is inferred from ``K``; each band block is multiplied by the
     matching :func:`sh_rotation` matrix, so that with the DC term unchanged
     ``eval_sh(deg, [dc, rotate_sh(rest, R)], R d) == eval_sh(deg, [dc, rest], d)``.
-    Computed in float64; returns the input's array type (numpy or mlx) and
-    floating dtype (non-floating input gives float64 numpy / float32 mlx).
+    The rotation matrices are computed in float64 and applied in the input's
+    precision (float64 input stays float64; others use float32, whose error
+    of ~1e-7 is below float32 storage); returns the input's array type (numpy
+    or mlx) and floating dtype (non-floating input gives float64 numpy /
+    float32 mlx).
     ``K - 1 == 0`` returns an unchanged copy.  The mlx path goes through numpy
     and is not differentiable (this is a data edit, not a training op).
     """
@@ -372,22 +375,27 @@ def rotate_sh(sh_rest, R):
         if not mx.issubdtype(dtype, mx.floating):
             dtype = mx.float32
         src = sh_rest.astype(mx.float32) if sh_rest.dtype == mx.bfloat16 else sh_rest
-        x = np.array(src, dtype=np.float64)
+        x = np.asarray(src, dtype=np.float32)
     else:
         arr = np.asarray(sh_rest)
         dtype = arr.dtype if np.issubdtype(arr.dtype, np.floating) else np.dtype(np.float64)
-        x = np.array(arr, dtype=np.float64)
+        x = np.asarray(arr, dtype=np.float64 if dtype == np.float64 else np.float32)
     if x.ndim < 2:
         raise ValueError(f"sh_rest must have shape (..., K-1, 3), got {x.shape}")
     degree = sh_degree_from_bases(x.shape[-2] + 1)
     mats = sh_rotation(R, degree)
 
-    out = x
-    if degree > 0:
-        out = np.empty_like(x)
+    if degree == 0:
+        out = x.copy()
+    else:
+        # one GEMM with the block-diagonal matrix of all bands: rows are (splat, channel)
+        k1 = x.shape[-2]
+        full = np.zeros((k1, k1), dtype=x.dtype)
         for band, D in enumerate(mats, start=1):
             sl = _band_slice(band)
-            out[..., sl, :] = np.matmul(D, x[..., sl, :])
+            full[sl, sl] = D
+        xt = np.ascontiguousarray(np.swapaxes(x, -1, -2))  # (..., C, K-1)
+        out = np.swapaxes((xt.reshape(-1, k1) @ full.T).reshape(xt.shape), -1, -2)
 
     if use_mx:
         return mx.array(out, dtype=dtype)

@@ -1,0 +1,142 @@
+"""Headless workflows: ``blender -b -P blender_splat.py -- COMMAND ...`` or ``python blender_splat.py COMMAND ...``.
+
+Subcommands go through Blender objects exactly as the UI does (compose sets
+the inserted object's location, rotation and scale on the object and lets
+export bake them). Exit code 0 on success, 1 with a message on bad input,
+2 on bad usage.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+
+import bpy
+
+from mlx3d.errors import Mlx3dError
+
+from . import workflows
+
+
+def _print(messages) -> None:
+    for message in messages:
+        print(message)
+
+
+def _reset_scene() -> None:
+    bpy.ops.wm.read_homefile(use_empty=True)
+
+
+def _import(path, args):
+    obj, messages = workflows.import_splat_file(path, sh_degree=args.sh_degree, drop_nonfinite=args.drop_nonfinite, axis=args.axis)
+    _print(messages)
+    return obj
+
+
+def _save_blend(args) -> None:
+    if getattr(args, "save_blend", None):
+        bpy.ops.wm.save_as_mainfile(filepath=args.save_blend, check_existing=False)
+        print(f"saved {args.save_blend}")
+
+
+def cmd_import(args) -> None:
+    _reset_scene()
+    for path in args.files:
+        _import(path, args)
+    _save_blend(args)
+
+
+def cmd_export(args) -> None:
+    bpy.ops.wm.open_mainfile(filepath=args.blend)
+    objects = [bpy.data.objects[name] for name in args.objects] if args.objects else list(bpy.context.scene.objects)
+    _print(workflows.export_splat_file(args.out, objects, axis=args.axis)[1])
+
+
+def cmd_compose(args) -> None:
+    _reset_scene()
+    scene_obj = _import(args.scene, args)
+    inserted = _import(args.insert, args)
+    inserted.location = args.location
+    inserted.rotation_mode = "XYZ"
+    inserted.rotation_euler = [math.radians(a) for a in args.rotation_deg]
+    inserted.scale = args.scale if len(args.scale) == 3 else args.scale * 3
+    _print(workflows.export_splat_file(args.out, [scene_obj, inserted], axis=args.axis)[1])
+    _save_blend(args)
+
+
+def cmd_clean(args) -> None:
+    _reset_scene()
+    obj = _import(args.input, args)
+    method = "RADIUS" if args.radius is not None else "STATISTICAL"
+    _print(workflows.remove_floaters(obj, method=method, k=args.stat_k, std_ratio=args.stat_std, radius=args.radius or 0.0, min_neighbours=args.min_neighbours or 1)[1])
+    _print(workflows.export_splat_file(args.out, [obj], axis=args.axis)[1])
+
+
+def cmd_compact(args) -> None:
+    _reset_scene()
+    obj = _import(args.input, args)
+    _print(workflows.compact_object(obj, max_gaussians=args.max_gaussians, min_opacity=args.min_opacity, sh_degree=args.target_sh_degree))
+    _print(workflows.export_splat_file(args.out, [obj], axis=args.axis)[1])
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="blender_splat", description="Gaussian splat workflows in Blender, headless.")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    def add(name, func, text):
+        p = sub.add_parser(name, help=text, description=text)
+        p.set_defaults(func=func)
+        p.add_argument("--axis", choices=sorted(workflows.AXIS_PRESETS), default="NONE", help="axis convention of the files (default NONE)")
+        p.add_argument("--sh-degree", type=int, choices=(0, 1, 2, 3), default=None, help="cap the SH degree on import")
+        p.add_argument("--drop-nonfinite", action="store_true", help="drop rows with NaN/Inf instead of refusing the file")
+        return p
+
+    p = add("import", cmd_import, "Import PLY files as splat objects (and save a .blend).")
+    p.add_argument("files", nargs="+", metavar="FILE.ply")
+    p.add_argument("--save-blend", metavar="OUT.blend")
+
+    p = add("export", cmd_export, "Export splat objects of a .blend, transforms baked, into one PLY.")
+    p.add_argument("--blend", required=True, metavar="IN.blend")
+    p.add_argument("--objects", nargs="*", metavar="NAME", help="object names (default: every splat object)")
+    p.add_argument("--out", required=True, metavar="OUT.ply")
+
+    p = add("compose", cmd_compose, "Insert an object splat into a scene splat with a Blender transform and export both.")
+    p.add_argument("--scene", required=True, metavar="SCENE.ply")
+    p.add_argument("--insert", required=True, metavar="OBJECT.ply")
+    p.add_argument("--location", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("X", "Y", "Z"))
+    p.add_argument("--rotation-deg", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("RX", "RY", "RZ"), help="Euler XYZ, degrees")
+    p.add_argument("--scale", type=float, nargs="+", default=[1.0], metavar="S", help="uniform S or SX SY SZ")
+    p.add_argument("--out", required=True, metavar="OUT.ply")
+    p.add_argument("--save-blend", metavar="OUT.blend")
+
+    p = add("clean", cmd_clean, "Remove floaters from a PLY (statistical by default, or --radius/--min-neighbours).")
+    p.add_argument("input", metavar="IN.ply")
+    p.add_argument("out", metavar="OUT.ply")
+    p.add_argument("--stat-k", type=int, default=25)
+    p.add_argument("--stat-std", type=float, default=10.5)
+    p.add_argument("--radius", type=float, default=None)
+    p.add_argument("--min-neighbours", type=int, default=None)
+
+    p = add("compact", cmd_compact, "Compact a PLY: keep the most important splats, truncate SH.")
+    p.add_argument("input", metavar="IN.ply")
+    p.add_argument("out", metavar="OUT.ply")
+    p.add_argument("--max-gaussians", type=int, default=None)
+    p.add_argument("--min-opacity", type=float, default=0.0)
+    p.add_argument("--target-sh-degree", type=int, choices=(0, 1, 2, 3), default=None)
+    return parser
+
+
+def main(argv) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command == "compose" and len(args.scale) not in (1, 3):
+        parser.error(f"--scale takes 1 or 3 values, got {len(args.scale)}")
+    if args.command == "clean" and (args.radius is None) != (args.min_neighbours is None):
+        parser.error("clean: --radius and --min-neighbours go together")
+    try:
+        args.func(args)
+    except (Mlx3dError, ValueError, OSError, KeyError, RuntimeError) as exc:
+        print(f"blender_splat {args.command}: error: {exc}", file=sys.stderr)
+        return 1
+    return 0
