@@ -6,7 +6,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.mlx3d-installed
 
-.PHONY: demo test bench install
+.PHONY: demo test bench install extension
 
 demo: $(STAMP)
 	$(VENV)/bin/mlx3d demo --out demo_out
@@ -20,6 +20,10 @@ bench: $(STAMP)
 	$(PY) bench/from_points.py
 
 install: $(STAMP)
+
+# The Blender extension zip(s) in dist/ (see addon/package.py).
+extension: $(STAMP)
+	$(PY) addon/package.py
 
 # Editable install without build isolation: the extension builds against the
 # pinned mlx in this venv, and edited C++ sources rebuild on the next import.

@@ -12,8 +12,8 @@ needed and runs ``addon.headless``. ``--help`` lists the subcommands.
 import importlib
 import sys
 
+import bpy  # before addon_utils, which the bpy module only provides once bpy is imported
 import addon_utils
-import bpy
 
 EXTENSION_ID = "mlx3d_splat"
 
