@@ -41,9 +41,10 @@ class _Progress:
         return False
 
 
-def _report_all(op, messages, level="INFO"):
-    for message in messages:
-        op.report({"WARNING"} if "not exported" in message or "precision" in message else {level}, message)
+def _report_all(op, messages):
+    """The first message is the result (INFO); the rest are caveats (WARNING)."""
+    for i, message in enumerate(messages):
+        op.report({"INFO"} if i == 0 else {"WARNING"}, message)
 
 
 class IMPORT_SCENE_OT_gaussian_splat_ply(bpy.types.Operator, ImportHelper):

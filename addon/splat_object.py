@@ -299,7 +299,8 @@ def _ensure_material(cloud) -> None:
     mat = bpy.data.materials.get(MATERIAL_NAME)
     if mat is None:
         mat = bpy.data.materials.new(MATERIAL_NAME)
-        mat.use_nodes = True
+        if bpy.app.version < (5, 0, 0):  # 5.0+ materials always use nodes
+            mat.use_nodes = True
         nodes, links = mat.node_tree.nodes, mat.node_tree.links
         nodes.clear()
         attr = nodes.new("ShaderNodeAttribute")

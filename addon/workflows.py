@@ -1,7 +1,9 @@
 """What the add-on does, as plain functions on Blender objects.
 
 Operators and the headless script both call these; each returns what it made
-and a list of messages for the user. Errors are raised as ``ValueError``
+and a list of messages for the user: the first says what was done, the rest
+are caveats (dropped rows, zero-filled properties, attributes left out of a
+file). Errors are raised as ``ValueError``
 subclasses with a message naming the object, file or value at fault, before
 anything in the scene or on disk is changed.
 """
@@ -9,6 +11,8 @@ anything in the scene or on disk is changed.
 from __future__ import annotations
 
 import os
+import warnings
+from contextlib import contextmanager
 
 import bpy
 import numpy as np
@@ -41,6 +45,15 @@ AXIS_ITEMS = [
 ]
 
 
+@contextmanager
+def _warnings_into(messages: list):
+    """Turn Python warnings raised by mlx3d inside the block into user messages."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        yield
+    messages.extend(str(w.message) for w in caught)
+
+
 def axis_matrix(axis: str) -> np.ndarray:
     try:
         return AXIS_PRESETS[axis]
@@ -64,15 +77,14 @@ def import_splat_file(path, *, sh_degree=None, drop_nonfinite=False, axis="NONE"
     leaves the scene untouched.
     """
     matrix = axis_matrix(axis).copy()
-    arrays = read_splat_ply(path, sh_degree=sh_degree, nonfinite="drop" if drop_nonfinite else "error")
+    notes: list = []
+    with _warnings_into(notes):
+        arrays = read_splat_ply(path, sh_degree=sh_degree, nonfinite="drop" if drop_nonfinite else "error")
     if location is not None:
         matrix[:3, 3] = np.asarray(location, dtype=np.float64)
     name = os.path.splitext(os.path.basename(os.fspath(path)))[0]
     obj, messages = create_splat_object(name, arrays, collection=collection, matrix=None if is_identity(matrix) else matrix)
-    messages = [f"imported {arrays.count:,} splats (SH degree {arrays.sh_degree}) from {os.path.basename(os.fspath(path))}"] + messages
-    if arrays.dropped_rows:
-        messages.append(f"dropped {arrays.dropped_rows:,} rows with NaN/Inf values")
-    return obj, messages
+    return obj, [f"imported {arrays.count:,} splats (SH degree {arrays.sh_degree}) from {os.path.basename(os.fspath(path))}"] + notes + messages
 
 
 def export_splat_file(path, objects, *, axis="NONE", sh_degree=None):
@@ -91,7 +103,8 @@ def export_splat_file(path, objects, *, axis="NONE", sh_degree=None):
         arrays, warnings = baked_splats(obj, to_file @ object_matrix(obj))
         parts.append(arrays)
         messages += warnings
-    merged = parts[0] if len(parts) == 1 and sh_degree is None else merge_splats(parts, sh_degree)
+    with _warnings_into(messages):
+        merged = parts[0] if len(parts) == 1 and sh_degree is None else merge_splats(parts, sh_degree)
     write_splat_ply(path, merged)
     names = ", ".join(obj.name for obj in objects)
     return merged.count, [f"exported {merged.count:,} splats from {names} to {os.path.basename(os.fspath(path))}"] + messages
@@ -108,7 +121,8 @@ def merge_objects(objects, name="Merged splats", collection=None):
         arrays, warnings = baked_splats(obj)
         parts.append(arrays)
         messages += warnings
-    merged = merge_splats(parts)
+    with _warnings_into(messages):
+        merged = merge_splats(parts)
     obj, more = create_splat_object(name, merged, collection=collection or objects[0].users_collection[0])
     return obj, [f"merged {len(objects)} objects into '{obj.name}' ({merged.count:,} splats)"] + messages + more
 

@@ -271,6 +271,18 @@ def test_nan_rows_dropped_with_count(extension, clean_scene, tmp_path):
         bpy.ops.import_scene.gaussian_splat_ply(filepath=str(tmp_path / "in.ply"))
     obj = import_file(tmp_path / "in.ply", drop_nonfinite=True)
     assert len(obj.data.points) == 298
+    _, messages = extension.addon.workflows.import_splat_file(tmp_path / "in.ply", drop_nonfinite=True)
+    assert any("2 of 300" in m for m in messages[1:])  # reported to the user, not only to Python's warnings
+
+
+def test_merge_reports_zero_filled_properties(extension, clean_scene, tmp_path):
+    make_ply(tmp_path / "a.ply", n=10, seed=1)
+    make_ply(tmp_path / "b.ply", n=10, seed=2, extras=False)
+    a, b = import_file(tmp_path / "a.ply"), import_file(tmp_path / "b.ply")
+    _, messages = extension.addon.workflows.export_splat_file(tmp_path / "out.ply", [a, b])
+    assert any("filled with 0" in m and "segment" in m for m in messages[1:])
+    out = read_splat_ply(tmp_path / "out.ply")
+    np.testing.assert_array_equal(out.extra["segment"][10:], 0)
 
 
 # ------------------------------------------------------------------ options
