@@ -12,7 +12,7 @@ import bpy
 from bpy.props import BoolProperty, CollectionProperty, EnumProperty, FloatProperty, IntProperty, StringProperty
 from bpy_extras.io_utils import ExportHelper, ImportHelper
 
-from . import workflows
+from . import ellipsoids, workflows
 from .splat_object import is_splat_object
 
 SH_ITEMS = [("FILE", "As in file", "Keep every SH coefficient of the file")] + [(str(d), f"Degree {d}", f"Truncate or zero-pad SH to degree {d}") for d in range(4)]
@@ -219,6 +219,24 @@ class MLX3D_OT_compact(_SplatEdit, bpy.types.Operator):
         )
 
 
+class MLX3D_OT_show_ellipsoids(bpy.types.Operator):
+    """Show each splat as an ellipsoid (2 standard deviations) for close inspection, or go back to points"""
+
+    bl_idname = "mlx3d.show_ellipsoids"
+    bl_label = "Show Ellipsoids"
+    bl_options = {"REGISTER", "UNDO"}
+
+    show: BoolProperty(name="Show", default=True)
+
+    @classmethod
+    def poll(cls, context):
+        return is_splat_object(context.active_object)
+
+    def execute(self, context):
+        ellipsoids.set_ellipsoids(context.active_object, self.show)
+        return {"FINISHED"}
+
+
 class MLX3D_FH_gaussian_splat_ply(bpy.types.FileHandler):
     """Drag and drop .ply files onto the 3D viewport to import them as splats"""
 
@@ -248,5 +266,6 @@ CLASSES = (
     MLX3D_OT_crop_to_box,
     MLX3D_OT_remove_floaters,
     MLX3D_OT_compact,
+    MLX3D_OT_show_ellipsoids,
     MLX3D_FH_gaussian_splat_ply,
 )

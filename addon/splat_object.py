@@ -15,10 +15,11 @@ rot             QUATERNION    rot_0..3 (w,x,y,z as stored, not normalised)
                               type is kept in the data's ``mlx3d_ply_types``
 ==============  ============  ==============================================
 
-Display attributes are derived from those and never exported: ``radius`` and
-``splat_color`` (linear RGB from f_dc, alpha = opacity) for the viewport and
-Cycles; on Blender 5.3+ also ``scale``, ``rotation``, ``radiance:base`` and
-``radiance:sh_<k>``, the layout of Blender's own splat importer, so its native
+Display attributes are derived from those and never exported: ``radius``,
+``splat_color`` (linear RGB from f_dc, alpha = opacity) and ``rotation`` (the
+unit quaternion) for the viewport, Cycles and the ellipsoid display; on
+Blender 5.3+ also ``scale``, ``radiance:base`` and ``radiance:sh_<k>``,
+completing the layout of Blender's own splat importer, so its native
 renderer draws our objects. Point clouds made by that importer (without the raw
 attributes) are read from those attributes instead.
 
@@ -42,7 +43,7 @@ RAW_ATTRIBUTES = ("f_dc", "opacity", "log_scale", "rot")
 TYPES_KEY = "mlx3d_ply_types"
 MATERIAL_NAME = "MLX3D Splat"
 NATIVE_SPLAT_VERSION = (5, 3, 0)
-_DISPLAY = {"radius", "splat_color"}
+_DISPLAY = {"radius", "splat_color", "rotation"}
 _NATIVE = {"scale", "rotation", "radiance:base"}
 _NATIVE_SH = re.compile(r"^radiance:sh_(\d+)$")
 _F_REST = re.compile(r"^f_rest_(\d+)$")
@@ -269,6 +270,9 @@ def update_display(cloud, arrays: SplatArrays) -> None:
     _set(cloud.attributes, "radius", "FLOAT", 2.0 * np.cbrt(np.prod(scales, axis=1)))
     rgb = np.clip(0.5 + C0 * arrays.sh_dc[:, 0, :].astype(np.float64), 0.0, 1.0)
     _set(cloud.attributes, "splat_color", "FLOAT_COLOR", np.column_stack([_srgb_to_linear(rgb), opacity]))
+    quats = arrays.quats.astype(np.float64)
+    quats /= np.maximum(np.linalg.norm(quats, axis=1, keepdims=True), 1e-30)
+    _set(cloud.attributes, "rotation", "QUATERNION", quats)
     if bpy.app.version >= NATIVE_SPLAT_VERSION:
         _write_native(cloud, arrays, scales, opacity)
     _ensure_material(cloud)
@@ -280,10 +284,7 @@ def _write_native(cloud, arrays, scales, opacity) -> None:
     float4 = "FLOAT4" if "FLOAT4" in types else "FLOAT_COLOR"
     if float4 not in _LAYOUT:
         _LAYOUT[float4] = (4, "value", np.float32)
-    quats = arrays.quats.astype(np.float64)
-    quats /= np.maximum(np.linalg.norm(quats, axis=1, keepdims=True), 1e-30)
     _set(cloud.attributes, "scale", "FLOAT_VECTOR", scales)
-    _set(cloud.attributes, "rotation", "QUATERNION", quats)
     _set(cloud.attributes, "radiance:base", float4, np.column_stack([arrays.sh_dc[:, 0, :], opacity]))
     for k in range(arrays.sh_rest.shape[1]):
         _set(cloud.attributes, f"radiance:sh_{k}", "FLOAT_VECTOR", arrays.sh_rest[:, k, :])

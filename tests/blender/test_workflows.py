@@ -329,7 +329,7 @@ def test_export_reads_blender_native_splat_layout(extension, clean_scene, tmp_pa
 
     obj = import_file(tmp_path / "in.ply")
     attrs = obj.data.attributes
-    for name in ["f_dc", "opacity", "log_scale", "rot"] + [f"f_rest_{i}" for i in range(24)]:
+    for name in ["f_dc", "opacity", "log_scale", "rot", "rotation"] + [f"f_rest_{i}" for i in range(24)]:
         attrs.remove(attrs[name])
     alpha = (1 / (1 + np.exp(-arrays.opacities.astype(np.float64)))).astype(np.float32)
     attrs.new("scale", "FLOAT_VECTOR", "POINT").data.foreach_set("vector", np.exp(arrays.scales).ravel())
@@ -364,3 +364,24 @@ def test_headless_compose_script(extension, extension_env, tmp_path):
                           "--out", str(tmp_path / "x.ply")], env=extension_env, capture_output=True, text=True, timeout=300)
     assert bad.returncode == 1 and "nope.ply" in bad.stderr
     assert not (tmp_path / "x.ply").exists()
+
+
+def test_ellipsoid_display_instances_oriented_scaled_spheres(extension, clean_scene, tmp_path):
+    from mlx3d.transforms import quaternion_to_matrix
+
+    make_ply(tmp_path / "in.ply", n=40, extras=False)
+    arrays = read_splat_ply(tmp_path / "in.ply")
+    obj = import_file(tmp_path / "in.ply")
+    assert bpy.ops.mlx3d.show_ellipsoids(show=True) == {"FINISHED"}
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    mats = [np.array(i.matrix_world) for i in depsgraph.object_instances if i.is_instance and i.parent and i.parent.original == obj]
+    assert len(mats) == 40
+    for i, m in enumerate(mats):
+        want = np.eye(4)
+        want[:3, :3] = quaternion_to_matrix(arrays.quats[i].astype(np.float64)) @ np.diag(2 * np.exp(arrays.scales[i].astype(np.float64)))
+        want[:3, 3] = arrays.means[i]
+        np.testing.assert_allclose(m, want, rtol=1e-5, atol=1e-5 * np.abs(want[:3, :3]).max())
+    export_file(tmp_path / "out.ply")  # display only: the file is unchanged
+    assert_same_bits(vertex(tmp_path / "in.ply"), vertex(tmp_path / "out.ply"))
+    assert bpy.ops.mlx3d.show_ellipsoids(show=False) == {"FINISHED"}
+    assert not obj.modifiers
