@@ -18,6 +18,7 @@ bench: $(STAMP)
 	$(PY) bench/ply_io.py
 	$(PY) bench/knn.py
 	$(PY) bench/from_points.py
+	$(PY) bench/blender_io.py
 
 install: $(STAMP)
 
