@@ -385,3 +385,17 @@ def test_ellipsoid_display_instances_oriented_scaled_spheres(extension, clean_sc
     assert_same_bits(vertex(tmp_path / "in.ply"), vertex(tmp_path / "out.ply"))
     assert bpy.ops.mlx3d.show_ellipsoids(show=False) == {"FINISHED"}
     assert not obj.modifiers
+
+
+def test_info_box_values(extension, clean_scene, tmp_path):
+    make_ply(tmp_path / "in.ply", n=123, degree=2)
+    arrays = read_splat_ply(tmp_path / "in.ply")
+    obj = import_file(tmp_path / "in.ply")
+    obj.location = (10.0, 0.0, 0.0)
+    info = extension.addon.workflows.splat_info(obj)
+    assert info["count"] == 123 and info["sh_degree"] == 2
+    np.testing.assert_allclose(info["bounds_min"], arrays.means.min(axis=0) + [10, 0, 0], rtol=1e-6)
+    np.testing.assert_allclose(info["bounds_max"], arrays.means.max(axis=0) + [10, 0, 0], rtol=1e-6)
+    write_splat_ply(tmp_path / "written.ply", arrays)
+    header = (tmp_path / "written.ply").read_bytes().index(b"end_header\n") + len(b"end_header\n")
+    assert info["memory_bytes"] == os.path.getsize(tmp_path / "written.ply") - header  # PLY body size
