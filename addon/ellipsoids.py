@@ -11,32 +11,12 @@ from __future__ import annotations
 
 import bpy
 
+from .splat_object import attribute_material
+
 MODIFIER_NAME = "MLX3D Ellipsoids"
 TREE_NAME = "MLX3D Splat Ellipsoids"
 MATERIAL_NAME = "MLX3D Splat Ellipsoid"
 ELLIPSOID_SIGMAS = 2.0
-
-
-def _material():
-    """Emissive material reading ``splat_color`` from the instancer (the splat point)."""
-    mat = bpy.data.materials.get(MATERIAL_NAME)
-    if mat is not None:
-        return mat
-    mat = bpy.data.materials.new(MATERIAL_NAME)
-    if bpy.app.version < (5, 0, 0):  # 5.0+ materials always use nodes
-        mat.use_nodes = True
-    nodes, links = mat.node_tree.nodes, mat.node_tree.links
-    nodes.clear()
-    attr = nodes.new("ShaderNodeAttribute")
-    attr.attribute_type = "INSTANCER"
-    attr.attribute_name = "splat_color"
-    emission = nodes.new("ShaderNodeEmission")
-    out = nodes.new("ShaderNodeOutputMaterial")
-    links.new(attr.outputs["Color"], emission.inputs["Color"])
-    links.new(emission.outputs["Emission"], out.inputs["Surface"])
-    for i, node in enumerate((attr, emission, out)):
-        node.location = (250 * i - 250, 0)
-    return mat
 
 
 def _node_tree():
@@ -53,7 +33,7 @@ def _node_tree():
     sphere.inputs["Radius"].default_value = 1.0
     sphere.inputs["Subdivisions"].default_value = 2
     set_material = nodes.new("GeometryNodeSetMaterial")
-    set_material.inputs["Material"].default_value = _material()
+    set_material.inputs["Material"].default_value = attribute_material(MATERIAL_NAME, "INSTANCER", transparent=False)
     rotation = nodes.new("GeometryNodeInputNamedAttribute")
     rotation.data_type = "QUATERNION"
     rotation.inputs["Name"].default_value = "rotation"
