@@ -1,4 +1,8 @@
-"""Gaussian splat models and spherical harmonics (the ``mlx3d.splatting`` API)."""
+"""Gaussian splat models, spherical harmonics and rendering (the ``mlx3d.splatting`` API).
+
+The rendering names are re-exported from ``mlx3d.render`` on first use (the
+renderer itself imports ``mlx3d.splatting.sh``, so an eager import would be a cycle).
+"""
 
 from .model import GaussianModel, merge
 from .ops import merge_splats, resize_sh_rest, transform_splats
@@ -15,7 +19,27 @@ from .sh import (
     sh_to_rgb,
 )
 
-__all__ = [
+_RENDER_NAMES = (
+    "bin_gaussians",
+    "project_gaussians",
+    "project_gaussians_ut",
+    "quat_scale_to_cov3d",
+    "rasterize_features",
+    "render_gaussian_depth",
+    "render_gaussian_features",
+    "render_gaussians",
+)
+
+
+def __getattr__(name):
+    if name in _RENDER_NAMES:
+        from .. import render
+
+        return getattr(render, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+__all__ = list(_RENDER_NAMES) + [
     "C0",
     "MAX_SH_DEGREE",
     "GaussianModel",

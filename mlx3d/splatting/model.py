@@ -284,6 +284,27 @@ class GaussianModel:
         out.params["sh_rest"] = resize_sh_rest(out.params["sh_rest"], degree)
         return out
 
+    # ------------------------------------------------------------ rendering
+    def render(self, camera, background=None, antialias: bool = False, projection: str = "auto", render_depth: bool = False, sh_degree: int | None = None, **kwargs) -> dict:
+        """Render from ``camera`` with SH colour up to ``sh_degree`` (default: the model's).
+        Returns ``mlx3d.render.render_gaussians``' dict (image, alpha, depth, ...)."""
+        from ..render import render_gaussians
+
+        return render_gaussians(
+            camera, self.means, self.quats, self.scales, self.opacities, sh=self.sh,
+            sh_degree=self.sh_degree if sh_degree is None else sh_degree, background=background,
+            antialias=antialias, projection=projection, render_depth=render_depth, **kwargs,
+        )
+
+    def render_features(self, camera, features, background=None, normalize: bool = False, antialias: bool = False, projection: str = "auto", **kwargs) -> mx.array:
+        """(H,W,F) image of per-Gaussian ``features`` (N,F) (see ``render_gaussian_features``)."""
+        from ..render import render_gaussian_features
+
+        return render_gaussian_features(
+            camera, self.means, self.quats, self.scales, self.opacities, features, background=background,
+            normalize=normalize, antialias=antialias, projection=projection, **kwargs,
+        )
+
     # ------------------------------------------------------------ transform
     def transform(self, matrix) -> "GaussianModel":
         """A copy with the 4x4 affine ``matrix`` applied (see ``ops.transform_splats``).

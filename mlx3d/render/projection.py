@@ -1,0 +1,129 @@
+"""Projection of 3D Gaussians to 2D image-space Gaussians (MLX, differentiable).
+
+Two methods, one result type:
+
+- EWA (``project_gaussians``): the camera-space covariance is pushed through
+  the Jacobian of the pinhole projection at the Gaussian's centre, with x/z and
+  y/z clamped to 1.3 times the half field of view (so that off-screen Gaussians
+  do not explode). Exact for pinhole cameras only.
+- Unscented transform (``project_gaussians_ut``): 6 sigma points at
+  ``mean ± sqrt(3)·L_k`` (L = R·diag(s), so Σ = L Lᵀ) go through
+  ``camera.camera_to_pixels`` — any camera model: distorted, fisheye,
+  orthographic — and their spread gives the 2D covariance (exact for linear
+  maps, second-order accurate otherwise).
+
+Both add ``blur`` (pixels², default 0.3 as in 3DGS) to the 2D covariance; with
+``antialias`` the opacity is scaled by sqrt(det Σ / det(Σ + blur·I)) as in
+Mip-Splatting. A Gaussian is culled (radius 0) when its centre is nearer than
+``camera.near`` or farther than ``camera.far``, its 2D covariance is
+degenerate (determinant ≤ 0 or not finite), or its 3σ box misses the image.
+Culled Gaussians produce finite values everywhere, so their gradients are
+exactly zero rather than NaN.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import mlx.core as mx
+
+from ..transforms import quaternion_to_matrix
+
+# 3-sigma extent and the minimum eigenvalue floor used for radii (3DGS: 0.1)
+SIGMA_EXTENT = 3.0
+_EIGEN_FLOOR = 0.1
+
+
+class Projection(NamedTuple):
+    """Image-space Gaussians. Shapes for N Gaussians:
+
+    means2d (N,2) pixels; conics (N,3) = (a, b, c) of Σ2D⁻¹ = [[a,b],[b,c]];
+    radii (N,) int32 pixels (0 = culled); depths (N,) camera z;
+    compensation (N,) opacity factor (1 without antialias).
+    """
+
+    means2d: mx.array
+    conics: mx.array
+    radii: mx.array
+    depths: mx.array
+    compensation: mx.array
+
+
+def quat_scale_to_cov3d(quats: mx.array, scales: mx.array) -> mx.array:
+    """World covariances (N,3,3) = R diag(s)² Rᵀ from quats (N,4) w,x,y,z and std-devs (N,3)."""
+    m = quaternion_to_matrix(quats) * scales[:, None, :]
+    return m @ mx.swapaxes(m, -1, -2)
+
+
+def _camera_arrays(camera):
+    view = mx.array(camera.viewmat, dtype=mx.float32)
+    return view[:3, :3], view[:3, 3]
+
+
+def _finish(camera, means2d, cov2d, depths, valid, blur, antialias) -> Projection:
+    """Blur, invert and size the 2D covariances (N,2,2); cull; build the result."""
+    a, b, c = cov2d[:, 0, 0], cov2d[:, 0, 1], cov2d[:, 1, 1]
+    det_orig = a * c - b * b
+    a, c = a + blur, c + blur
+    det = a * c - b * b
+    valid = valid & (det > 0) & mx.isfinite(det)
+    safe_det = mx.where(valid, det, 1.0)
+    if antialias:
+        compensation = mx.where(valid, mx.sqrt(mx.maximum(det_orig / safe_det, 0.0)), 0.0)
+    else:
+        compensation = mx.where(valid, 1.0, 0.0)
+    conics = mx.stack([c / safe_det, -b / safe_det, a / safe_det], axis=-1)
+    conics = mx.where(valid[:, None], conics, 0.0)
+    # radius from the larger eigenvalue (no gradient: it only selects tiles)
+    mid = mx.stop_gradient(0.5 * (a + c))
+    lam = mid + mx.sqrt(mx.maximum(mid * mid - mx.stop_gradient(safe_det), _EIGEN_FLOOR))
+    radius = mx.ceil(SIGMA_EXTENT * mx.sqrt(mx.maximum(lam, 0.0)))
+    m2 = mx.stop_gradient(means2d)
+    on_screen = (m2[:, 0] + radius > 0) & (m2[:, 0] - radius < camera.width) & (m2[:, 1] + radius > 0) & (m2[:, 1] - radius < camera.height)
+    valid = valid & on_screen & mx.isfinite(radius)
+    radii = mx.where(valid, radius, 0.0).astype(mx.int32)
+    means2d = mx.where(valid[:, None], means2d, 0.0)
+    return Projection(means2d, conics, radii, depths, compensation)
+
+
+def project_gaussians(camera, means, quats, scales, blur: float = 0.3, antialias: bool = False) -> Projection:
+    """EWA projection. means (N,3) world, quats (N,4) w,x,y,z (any length), scales (N,3) std-devs."""
+    rot, trans = _camera_arrays(camera)
+    p = means @ rot.T + trans
+    x, y, z = p[:, 0], p[:, 1], p[:, 2]
+    valid = (z >= camera.near) & (z <= camera.far) & mx.isfinite(z)
+    zs = mx.where(valid, z, 1.0)
+    fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
+    tan_x, tan_y = 0.5 * camera.width / fx, 0.5 * camera.height / fy
+    # clamp x/z and y/z to the frustum widened by 30% of the half field of view
+    tx = zs * mx.clip(x / zs, -(cx / fx + 0.3 * tan_x), (camera.width - cx) / fx + 0.3 * tan_x)
+    ty = zs * mx.clip(y / zs, -(cy / fy + 0.3 * tan_y), (camera.height - cy) / fy + 0.3 * tan_y)
+    zero = mx.zeros_like(zs)
+    jac = mx.stack(
+        [mx.stack([fx / zs, zero, -fx * tx / (zs * zs)], -1), mx.stack([zero, fy / zs, -fy * ty / (zs * zs)], -1)], axis=-2
+    )  # (N,2,3)
+    cov_cam = rot @ quat_scale_to_cov3d(quats, scales) @ rot.T
+    cov2d = jac @ cov_cam @ mx.swapaxes(jac, -1, -2)
+    means2d = mx.stack([fx * x / zs + cx, fy * y / zs + cy], axis=-1)
+    return _finish(camera, means2d, cov2d, z, valid, blur, antialias)
+
+
+def project_gaussians_ut(camera, means, quats, scales, blur: float = 0.3, antialias: bool = False) -> Projection:
+    """Unscented-transform projection through ``camera.camera_to_pixels`` (any camera model).
+
+    Same arguments and result as ``project_gaussians``. A Gaussian is culled
+    when any sigma point is nearer than ``camera.near``.
+    """
+    rot, trans = _camera_arrays(camera)
+    p = means @ rot.T + trans
+    axes = rot @ (quaternion_to_matrix(quats) * scales[:, None, :])  # (N,3,3): columns L_k in camera space
+    offsets = (3.0**0.5) * mx.swapaxes(axes, -1, -2)  # (N,3,3): row k = sqrt(3) L_k
+    sigma = mx.concatenate([p[:, None, :] + offsets, p[:, None, :] - offsets], axis=1)  # (N,6,3)
+    z = p[:, 2]
+    valid = (z <= camera.far) & mx.isfinite(z) & mx.all(sigma[..., 2] >= camera.near, axis=1)
+    safe_p = mx.where(valid[:, None], p, mx.array([0.0, 0.0, 1.0]))
+    safe_sigma = mx.where(valid[:, None, None], sigma, mx.array([0.0, 0.0, 1.0]))
+    centre = camera.camera_to_pixels(safe_p)  # (N,2)
+    spread = camera.camera_to_pixels(safe_sigma) - centre[:, None, :]  # (N,6,2)
+    cov2d = (mx.swapaxes(spread, -1, -2) @ spread) / 6.0
+    return _finish(camera, centre, cov2d, z, valid, blur, antialias)
