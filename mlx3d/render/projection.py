@@ -123,7 +123,7 @@ def project_gaussians_ut(camera, means, quats, scales, blur: float = 0.3, antial
     valid = (z <= camera.far) & mx.isfinite(z) & mx.all(sigma[..., 2] >= camera.near, axis=1)
     safe_p = mx.where(valid[:, None], p, mx.array([0.0, 0.0, 1.0]))
     safe_sigma = mx.where(valid[:, None, None], sigma, mx.array([0.0, 0.0, 1.0]))
-    centre = camera.camera_to_pixels(safe_p)  # (N,2)
-    spread = camera.camera_to_pixels(safe_sigma) - centre[:, None, :]  # (N,6,2)
+    centre = camera.camera_to_pixels(safe_p)[0]  # (N,2)
+    spread = camera.camera_to_pixels(safe_sigma)[0] - centre[:, None, :]  # (N,6,2)
     cov2d = (mx.swapaxes(spread, -1, -2) @ spread) / 6.0
     return _finish(camera, centre, cov2d, z, valid, blur, antialias)
