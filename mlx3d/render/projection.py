@@ -15,8 +15,8 @@ Two methods, one result type:
 Both add ``blur`` (pixels², default 0.3 as in 3DGS) to the 2D covariance; with
 ``antialias`` the opacity is scaled by sqrt(det Σ / det(Σ + blur·I)) as in
 Mip-Splatting. A Gaussian is culled (radius 0) when its centre is nearer than
-``camera.near`` or farther than ``camera.far``, its 2D covariance is
-degenerate (determinant ≤ 0 or not finite), or its 3σ box misses the image.
+``camera.near`` or farther than ``camera.far``, its blurred 2D covariance is
+not positive definite (determinant ≤ 0, negative diagonal, or not finite), or its 3σ box misses the image.
 Culled Gaussians produce finite values everywhere, so their gradients are
 exactly zero rather than NaN.
 """
@@ -66,7 +66,7 @@ def _finish(camera, means2d, cov2d, depths, valid, blur, antialias) -> Projectio
     det_orig = a * c - b * b
     a, c = a + blur, c + blur
     det = a * c - b * b
-    valid = valid & (det > 0) & mx.isfinite(det)
+    valid = valid & (det > 0) & (a > 0) & mx.isfinite(det)  # positive definite
     safe_det = mx.where(valid, det, 1.0)
     if antialias:
         compensation = mx.where(valid, mx.sqrt(mx.maximum(det_orig / safe_det, 0.0)), 0.0)

@@ -35,6 +35,8 @@ def rasterize_reference(
     offsets = np.asarray(tile_offsets, dtype=np.int64)
     ids = np.asarray(flatten_ids, dtype=np.int64)
     counts = offsets[1:] - offsets[:-1]
+    if ids.size == 0:  # nothing to draw (also covers N == 0)
+        return mx.zeros((height, width, channels)), mx.zeros((height, width))
     pix = tile_size * tile_size
     # pixel centres of one tile, row-major inside the tile
     local = np.stack(np.meshgrid(np.arange(tile_size), np.arange(tile_size), indexing="xy"), -1).reshape(-1, 2) + 0.5
