@@ -80,6 +80,12 @@ def cmd_compact(args) -> None:
     _print(workflows.export_splat_file(args.out, [obj], axis=args.axis)[1])
 
 
+def cmd_render(args) -> None:
+    bpy.ops.wm.open_mainfile(filepath=args.blend)
+    scene = bpy.context.scene
+    _print(workflows.render_splats(list(scene.objects), scene, antialias=args.antialias, background=args.background, filepath=args.out)[1])
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="blender_splat", description="Gaussian splat workflows in Blender, headless.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -117,6 +123,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--stat-std", type=float, default=10.5)
     p.add_argument("--radius", type=float, default=None)
     p.add_argument("--min-neighbours", type=int, default=None)
+
+    p = add("render", cmd_render, "Render the splat objects of a .blend from its scene camera to a PNG.")
+    p.add_argument("--blend", required=True, metavar="IN.blend")
+    p.add_argument("--out", required=True, metavar="OUT.png")
+    p.add_argument("--antialias", action="store_true")
+    p.add_argument("--background", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("R", "G", "B"))
 
     p = add("compact", cmd_compact, "Compact a PLY: keep the most important splats, truncate SH.")
     p.add_argument("input", metavar="IN.ply")

@@ -9,7 +9,7 @@ from __future__ import annotations
 import os
 
 import bpy
-from bpy.props import BoolProperty, CollectionProperty, EnumProperty, FloatProperty, IntProperty, StringProperty
+from bpy.props import BoolProperty, CollectionProperty, EnumProperty, FloatProperty, FloatVectorProperty, IntProperty, StringProperty
 from bpy_extras.io_utils import ExportHelper, ImportHelper
 
 from . import ellipsoids, workflows
@@ -237,6 +237,41 @@ class MLX3D_OT_show_ellipsoids(bpy.types.Operator):
         return {"FINISHED"}
 
 
+class MLX3D_OT_render(bpy.types.Operator):
+    """Render splat objects from the scene camera with mlx3d into the image 'MLX3D Render'"""
+
+    bl_idname = "mlx3d.render"
+    bl_label = "Render Splats"
+    bl_options = {"REGISTER"}
+
+    selected_only: BoolProperty(name="Selected only", default=False, description="Render only selected splat objects (else all)")
+    antialias: BoolProperty(name="Antialias", default=False, description="Mip-Splatting opacity compensation for the 2D blur")
+    background: FloatVectorProperty(name="Background", subtype="COLOR", size=3, min=0.0, max=1.0, default=(0.0, 0.0, 0.0))
+    filepath: StringProperty(name="Save to", subtype="FILE_PATH", default="", description="Also save a PNG here (optional)")
+
+    @classmethod
+    def poll(cls, context):
+        return any(is_splat_object(o) for o in context.scene.objects)
+
+    def execute(self, context):
+        objects = context.selected_objects if self.selected_only else context.scene.objects
+        try:
+            with _Progress(context) as progress:
+                progress(0, 1)
+                image, messages = workflows.render_splats(
+                    objects, context.scene, antialias=self.antialias, background=tuple(self.background),
+                    filepath=bpy.path.abspath(self.filepath) if self.filepath else None,
+                )
+        except (ValueError, OSError, RuntimeError) as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        for area in context.screen.areas if context.screen else ():
+            if area.type == "IMAGE_EDITOR":
+                area.spaces.active.image = image
+        _report_all(self, messages)
+        return {"FINISHED"}
+
+
 class MLX3D_FH_gaussian_splat_ply(bpy.types.FileHandler):
     """Drag and drop .ply files onto the 3D viewport to import them as splats"""
 
@@ -267,5 +302,6 @@ CLASSES = (
     MLX3D_OT_remove_floaters,
     MLX3D_OT_compact,
     MLX3D_OT_show_ellipsoids,
+    MLX3D_OT_render,
     MLX3D_FH_gaussian_splat_ply,
 )

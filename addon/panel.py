@@ -22,6 +22,9 @@ class MLX3D_PG_settings(bpy.types.PropertyGroup):
     compact_max: IntProperty(name="Max splats", default=0, min=0, description="0: no limit")
     compact_min_opacity: FloatProperty(name="Min opacity", default=0.0, min=0.0, max=1.0)
     compact_sh: EnumProperty(name="SH degree", items=operators.KEEP_SH_ITEMS, default="KEEP")
+    render_antialias: BoolProperty(name="Antialias", default=False)
+    render_background: bpy.props.FloatVectorProperty(name="Background", subtype="COLOR", size=3, min=0.0, max=1.0, default=(0.0, 0.0, 0.0))
+    render_path: bpy.props.StringProperty(name="Save to", subtype="FILE_PATH", default="")
 
 
 _info_cache: dict = {}
@@ -97,6 +100,14 @@ class VIEW3D_PT_mlx3d_splats(bpy.types.Panel):
         col.prop(settings, "compact_sh")
         op = col.operator(operators.MLX3D_OT_compact.bl_idname, icon="MOD_DECIM")
         op.max_gaussians, op.min_opacity, op.sh_degree = settings.compact_max, settings.compact_min_opacity, settings.compact_sh
+
+        col = layout.column(align=True)
+        col.label(text="Render (scene camera)")
+        col.prop(settings, "render_antialias")
+        col.prop(settings, "render_background")
+        col.prop(settings, "render_path")
+        op = col.operator(operators.MLX3D_OT_render.bl_idname, icon="RENDER_STILL")
+        op.antialias, op.background, op.filepath = settings.render_antialias, settings.render_background, settings.render_path
 
 
 CLASSES = (MLX3D_PG_settings, VIEW3D_PT_mlx3d_splats)

@@ -399,3 +399,86 @@ def test_info_box_values(extension, clean_scene, tmp_path):
     write_splat_ply(tmp_path / "written.ply", arrays)
     header = (tmp_path / "written.ply").read_bytes().index(b"end_header\n") + len(b"end_header\n")
     assert info["memory_bytes"] == os.path.getsize(tmp_path / "written.ply") - header  # PLY body size
+
+
+# ------------------------------------------------------------------ rendering
+def add_camera(location=(0.0, -4.0, 0.3), rotation_deg=(88.0, 0.0, 2.0), **data):
+    cam_data = bpy.data.cameras.new("cam")
+    for key, value in data.items():
+        setattr(cam_data, key, value)
+    cam = bpy.data.objects.new("cam", cam_data)
+    bpy.context.collection.objects.link(cam)
+    cam.location = location
+    cam.rotation_euler = tuple(math.radians(a) for a in rotation_deg)
+    bpy.context.scene.camera = cam
+    return cam
+
+
+@pytest.mark.parametrize(
+    "settings",
+    [
+        {},
+        {"lens": 35.0, "shift_x": 0.1, "shift_y": -0.05},
+        {"sensor_fit": "VERTICAL", "sensor_height": 20.0, "lens": 70.0},
+        {"sensor_fit": "HORIZONTAL", "sensor_width": 24.0, "res": (300, 500, 50)},
+        {"aspect": (2.0, 1.0), "shift_x": -0.2},
+        {"type": "ORTHO", "ortho_scale": 3.0, "shift_y": 0.1},
+    ],
+)
+def test_blender_camera_maps_exactly(extension, clean_scene, settings):
+    from bpy_extras.object_utils import world_to_camera_view
+
+    scene = bpy.context.scene
+    settings = dict(settings)
+    res = settings.pop("res", (640, 360, 100))
+    scene.render.resolution_x, scene.render.resolution_y, scene.render.resolution_percentage = res
+    aspect = settings.pop("aspect", (1.0, 1.0))
+    scene.render.pixel_aspect_x, scene.render.pixel_aspect_y = aspect
+    cam_obj = add_camera(**settings)
+    bpy.context.view_layer.update()
+    cam = extension.addon.camera.camera_from_blender(cam_obj, scene)
+    assert (cam.width, cam.height) == (res[0] * res[2] // 100, res[1] * res[2] // 100)
+    points = np.random.default_rng(0).uniform(-1.5, 1.5, (50, 3))
+    uv, depth = cam.project_points(points)
+    from mathutils import Vector
+
+    for p, (u, v), d in zip(points, uv, depth):
+        ndc = world_to_camera_view(scene, cam_obj, Vector(p))
+        assert u == pytest.approx(ndc.x * cam.width, abs=1e-3)
+        assert v == pytest.approx((1.0 - ndc.y) * cam.height, abs=1e-3)
+        if cam.model == "pinhole":
+            assert d == pytest.approx(ndc.z, rel=1e-5)
+
+
+def test_render_operator_matches_mlx3d_and_saves_png(extension, clean_scene, tmp_path):
+    from mlx3d.splatting import GaussianModel
+
+    make_ply(tmp_path / "in.ply", n=300, extras=False)
+    obj = import_file(tmp_path / "in.ply")
+    obj.location = (0.2, 0.0, 0.0)
+    scene = bpy.context.scene
+    scene.render.resolution_x, scene.render.resolution_y, scene.render.resolution_percentage = 64, 48, 100
+    cam_obj = add_camera()
+    out_png = tmp_path / "render.png"
+    assert bpy.ops.mlx3d.render(background=(0.1, 0.2, 0.3), filepath=str(out_png)) == {"FINISHED"}
+    image = bpy.data.images["MLX3D Render"]
+    assert tuple(image.size) == (64, 48)
+    pixels = np.empty(64 * 48 * 4, np.float32)
+    image.pixels.foreach_get(pixels)
+    got = pixels.reshape(48, 64, 4)[::-1, :, :3]
+    bpy.context.view_layer.update()
+    cam = extension.addon.camera.camera_from_blender(cam_obj, scene)
+    model = GaussianModel.from_arrays(transform_splats(read_splat_ply(tmp_path / "in.ply"), np.array(obj.matrix_world)))
+    want = np.clip(np.array(model.render(cam, background=(0.1, 0.2, 0.3))["image"]), 0, 1)
+    np.testing.assert_allclose(got, want, atol=1.0 / 255 + 1e-6)
+    assert np.abs(want - [0.1, 0.2, 0.3]).max() > 0.1  # the splats are in view
+    assert out_png.exists() and not [p for p in os.listdir(tmp_path) if p.endswith(".tmp.png")]
+    loaded = bpy.data.images.load(str(out_png))
+    assert tuple(loaded.size) == (64, 48)
+
+
+def test_render_without_camera_is_refused(extension, clean_scene, tmp_path):
+    make_ply(tmp_path / "in.ply", n=10, extras=False)
+    import_file(tmp_path / "in.ply")
+    with pytest.raises(RuntimeError, match="no active camera"):
+        bpy.ops.mlx3d.render()
