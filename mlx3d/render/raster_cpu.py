@@ -1,0 +1,192 @@
+"""The CPU rasterizer: a C++ MLX primitive (``mlx3d._core.rasterize_forward``).
+
+``rasterize_cpu`` composites binned 2D Gaussians front to back with the 3DGS
+rules (README, "Rasterizer math"; the per-pixel code is
+``mlx3d/csrc/raster_math.h``, shared with the Metal kernels) and is
+differentiable with ``mx.grad`` / ``mx.value_and_grad`` / ``mx.vjp`` with
+respect to means2d, conics, features and opacities; tile_offsets and
+flatten_ids get zero gradients. Forward-mode (``mx.jvp``) and ``mx.vmap`` are
+not implemented.
+
+Both passes are threaded over tiles. The backward pass sums gradients per tile
+entry, then per Gaussian in flatten_ids order, so its results are bitwise
+identical for any thread count. Threads: :func:`set_num_threads` (default:
+all cores, or the ``MLX3D_NUM_THREADS`` environment variable).
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+
+import mlx.core as mx
+import numpy as np
+
+__all__ = ["rasterize_cpu", "set_num_threads", "get_num_threads", "prepare_inputs"]
+
+_ENV_THREADS = "MLX3D_NUM_THREADS"
+_lock = threading.Lock()
+_num_threads: int | None = None  # None: the default (environment variable, else all cores)
+
+
+def _default_threads() -> int:
+    value = os.environ.get(_ENV_THREADS, "").strip()
+    if value:
+        try:
+            n = int(value)
+        except ValueError:
+            raise ValueError(f"{_ENV_THREADS} must be a positive integer, got {value!r}") from None
+        if n < 1:
+            raise ValueError(f"{_ENV_THREADS} must be a positive integer, got {value!r}")
+        return n
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def set_num_threads(n: int | None) -> None:
+    """Threads used by the CPU rasterizer; ``None`` or 0 restores the default
+    (``MLX3D_NUM_THREADS`` if set, else all cores available to this process)."""
+    global _num_threads
+    if n is not None:
+        if isinstance(n, bool) or not isinstance(n, (int, np.integer)):
+            raise ValueError(f"num_threads must be an int, got {n!r}")
+        if n < 0:
+            raise ValueError(f"num_threads must be >= 0, got {n}")
+    with _lock:
+        _num_threads = None if not n else int(n)
+
+
+def get_num_threads() -> int:
+    """Threads the CPU rasterizer uses (a positive int)."""
+    n = _num_threads
+    return n if n is not None else _default_threads()
+
+
+def _as_array(x, name: str) -> mx.array:
+    if isinstance(x, mx.array):
+        return x
+    try:
+        return mx.array(np.asarray(x))
+    except Exception as exc:  # noqa: BLE001 - reported with the argument's name
+        raise ValueError(f"{name}: cannot convert {type(x).__name__} to an array ({exc})") from None
+
+
+def _float32(x, name: str) -> mx.array:
+    a = _as_array(x, name)
+    if a.dtype == mx.bool_ or mx.issubdtype(a.dtype, mx.complexfloating):
+        raise ValueError(f"{name} must be a real floating-point array, got dtype {a.dtype}")
+    return a if a.dtype == mx.float32 else a.astype(mx.float32)
+
+
+def _int32(x, name: str) -> mx.array:
+    a = _as_array(x, name)
+    if not mx.issubdtype(a.dtype, mx.integer) or a.dtype == mx.bool_:
+        raise ValueError(f"{name} must be an integer array, got dtype {a.dtype}")
+    return a if a.dtype == mx.int32 else a.astype(mx.int32)
+
+
+def _positive_int(v, name: str, minimum: int = 1) -> int:
+    if isinstance(v, bool) or not isinstance(v, (int, np.integer)):
+        raise ValueError(f"{name} must be an int, got {v!r}")
+    if v < minimum:
+        raise ValueError(f"{name} must be >= {minimum}, got {v}")
+    return int(v)
+
+
+def prepare_inputs(
+    means2d, conics, features, opacities, tile_offsets, flatten_ids, width, height, tile_size, check_indices: bool = True
+):
+    """Validates and casts the rasterizer inputs (shared by the CPU and Metal paths).
+
+    Returns (means2d, conics, features, opacities, tile_offsets, flatten_ids,
+    width, height, tile_size) with float32 / int32 arrays. Raises ValueError
+    naming the offending argument. With ``check_indices`` the integer inputs
+    are also checked by value (offsets non-decreasing from 0 to M, ids in
+    [0, N)), which reads them (they come from the non-differentiable binning).
+    """
+    width = _positive_int(width, "width")
+    height = _positive_int(height, "height")
+    tile_size = _positive_int(tile_size, "tile_size")
+    means2d = _float32(means2d, "means2d")
+    conics = _float32(conics, "conics")
+    features = _float32(features, "features")
+    opacities = _float32(opacities, "opacities")
+    tile_offsets = _int32(tile_offsets, "tile_offsets")
+    flatten_ids = _int32(flatten_ids, "flatten_ids")
+
+    if means2d.ndim != 2 or means2d.shape[1] != 2:
+        raise ValueError(f"means2d must have shape (N, 2), got {tuple(means2d.shape)}")
+    n = means2d.shape[0]
+    if conics.ndim != 2 or conics.shape != (n, 3):
+        raise ValueError(f"conics must have shape (N, 3) = ({n}, 3), got {tuple(conics.shape)}")
+    if features.ndim != 2 or features.shape[0] != n or features.shape[1] < 1:
+        raise ValueError(f"features must have shape (N, C) with N = {n} and C >= 1, got {tuple(features.shape)}")
+    if opacities.ndim != 1 or opacities.shape[0] != n:
+        raise ValueError(f"opacities must have shape (N,) = ({n},), got {tuple(opacities.shape)}")
+    tiles = (-(-width // tile_size)) * (-(-height // tile_size))
+    if tile_offsets.ndim != 1 or tile_offsets.shape[0] != tiles + 1:
+        raise ValueError(
+            f"tile_offsets must have shape (tiles + 1,) = ({tiles + 1},) for a {width}x{height} image "
+            f"with tile_size {tile_size}, got {tuple(tile_offsets.shape)}"
+        )
+    if flatten_ids.ndim != 1:
+        raise ValueError(f"flatten_ids must have shape (M,), got {tuple(flatten_ids.shape)}")
+    m = flatten_ids.shape[0]
+    if check_indices:
+        off = np.asarray(tile_offsets)
+        if off[0] != 0 or off[-1] != m or np.any(np.diff(off) < 0):
+            raise ValueError(
+                f"tile_offsets must be non-decreasing from 0 to len(flatten_ids) = {m}, "
+                f"got first {int(off[0])}, last {int(off[-1])}"
+            )
+        if m:
+            ids = np.asarray(flatten_ids)
+            lo, hi = int(ids.min()), int(ids.max())
+            if lo < 0 or hi >= n:
+                raise ValueError(f"flatten_ids must lie in [0, N) = [0, {n}), got values in [{lo}, {hi}]")
+    return means2d, conics, features, opacities, tile_offsets, flatten_ids, width, height, tile_size
+
+
+def rasterize_cpu(
+    means2d,
+    conics,
+    features,
+    opacities,
+    tile_offsets,
+    flatten_ids,
+    width: int,
+    height: int,
+    tile_size: int = 16,
+    num_threads: int | None = None,
+):
+    """Composite binned Gaussians on the CPU.
+
+    Args:
+        means2d: (N, 2) pixel positions (x right, y down, pixel centres at +0.5).
+        conics: (N, 3) (a, b, c) of the inverse 2D covariance [[a, b], [b, c]].
+        features: (N, C) any channels (RGB, depth, normals, ...), C >= 1.
+        opacities: (N,) in [0, 1].
+        tile_offsets: (tiles_y * tiles_x + 1,) int; flatten_ids: (M,) int
+            (the binning of ``mlx3d.render.binning.bin_gaussians``).
+        width, height, tile_size: the image and its tiles.
+        num_threads: None for :func:`get_num_threads`, 0 for all hardware
+            threads, else that many threads.
+
+    Returns:
+        (accum (H, W, C) float32 without background, alpha (H, W) float32 =
+        1 - final transmittance, last (H, W) int32 = 1 + position of the last
+        contributing entry in the pixel's tile range, 0 if none), lazily
+        evaluated mx.arrays. Float inputs are cast to float32, ids to int32.
+    """
+    (means2d, conics, features, opacities, tile_offsets, flatten_ids, width, height, tile_size) = prepare_inputs(
+        means2d, conics, features, opacities, tile_offsets, flatten_ids, width, height, tile_size
+    )
+    threads = get_num_threads() if num_threads is None else _positive_int(num_threads, "num_threads", minimum=0)
+    from mlx3d import native
+
+    accum, alpha, last, _final_t = native.core().rasterize_forward(
+        means2d, conics, features, opacities, tile_offsets, flatten_ids, width, height, tile_size, threads
+    )
+    return accum, alpha, last
