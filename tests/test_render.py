@@ -197,11 +197,12 @@ def test_empty_scene_and_single_gaussian():
     check_case(cam, scene(1, seed=10, spread=0.1))
 
 
-def test_gradients_match_finite_differences():
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_gradients_match_finite_differences(backend):
     cam = camera(20, 16)
     s = scene(6, seed=11, spread=0.4)
     s["scales"][:] = np.maximum(s["scales"], 0.15)
-    _, _, grads = loss_and_grads(cam, s, "reference")
+    _, _, grads = loss_and_grads(cam, s, backend)
     rng = np.random.default_rng(0)
     for name in ("means", "scales", "opacities", "colors", "quats"):
         for _ in range(3):
@@ -210,7 +211,7 @@ def test_gradients_match_finite_differences():
             plus, minus = {k: v.copy() for k, v in s.items()}, {k: v.copy() for k, v in s.items()}
             plus[name][idx] += h
             minus[name][idx] -= h
-            fd = (loss_and_grads(cam, plus, "reference")[0] - loss_and_grads(cam, minus, "reference")[0]) / (2 * h)
+            fd = (loss_and_grads(cam, plus, backend)[0] - loss_and_grads(cam, minus, backend)[0]) / (2 * h)
             g = float(np.array(grads[name])[idx])
             assert abs(fd - g) <= 2e-2 * max(abs(fd), abs(g), 1.0), (name, idx, fd, g)
 
@@ -336,3 +337,25 @@ def test_real_garden_points_and_cameras():
         assert np.array(out["alpha"]).mean() > 0.1
         ref = model.render(cam, backend="reference")
         np.testing.assert_allclose(np.array(out["image"]), np.array(ref["image"]), atol=1e-4)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_screen_space_gradient_via_offset(backend):
+    """d loss / d means2d from a zero offset equals a finite difference of the 2D means."""
+    cam = camera(24, 20)
+    s = as_mx(scene(8, seed=18, spread=0.4))
+    w = mx.array(np.random.default_rng(2).normal(size=(20, 24, 3)).astype(np.float32))
+
+    def loss(offset):
+        out = render_gaussians(cam, s["means"], s["quats"], s["scales"], s["opacities"], colors=s["colors"], backend=backend, means2d_offset=offset)
+        return (out["image"] * w).sum()
+
+    zero = mx.zeros((8, 2))
+    grad = np.array(mx.grad(loss)(zero))
+    visible = np.array(render_gaussians(cam, s["means"], s["quats"], s["scales"], s["opacities"], colors=s["colors"], backend=backend)["visible"])
+    assert not grad[~visible].any() and np.abs(grad[visible]).max() > 0
+    for g in np.flatnonzero(visible)[:3]:
+        step = np.zeros((8, 2), np.float32)
+        step[g, 0] = 1e-2
+        fd = (float(loss(mx.array(step))) - float(loss(mx.array(-step)))) / 2e-2
+        assert abs(fd - grad[g, 0]) <= 2e-2 * max(abs(fd), 1.0)

@@ -128,6 +128,7 @@ def render_gaussians(
     backend: str = "auto",
     blur: float = 0.3,
     tile_size: int = TILE_SIZE,
+    means2d_offset=None,
 ) -> dict:
     """Render Gaussians from ``camera``; differentiable w.r.t. every float input.
 
@@ -138,6 +139,10 @@ def render_gaussians(
     expected depth (when ``render_depth``), ``means2d`` (N,2), ``conics``,
     ``radii`` (N,) int32, ``depths`` (N,), ``visible`` (N,) bool, ``plan``
     and ``stages`` (what ran).
+
+    means2d_offset: optional (N,2) added to the projected 2D means. Pass zeros
+    and differentiate w.r.t. it to get dL/d(means2d), the screen-space
+    gradient that density control accumulates.
     """
     plan = plan_render(camera, colors, sh, sh_degree, projection, antialias, render_depth, backend)
     ran = []
@@ -149,12 +154,13 @@ def render_gaussians(
     else:
         rgb = colors
     features = mx.concatenate([rgb, proj.depths[:, None]], axis=1) if plan.depth else rgb
+    means2d = proj.means2d if means2d_offset is None else proj.means2d + means2d_offset
     bg = None
     if background is not None:
         bg = mx.array(background, dtype=mx.float32)
         if plan.depth:
             bg = mx.concatenate([bg, mx.zeros((1,))])
-    accum, alpha = rasterize_features(proj.means2d, proj.conics, features, opac, bins, camera.width, camera.height, bg, plan.backend)
+    accum, alpha = rasterize_features(means2d, proj.conics, features, opac, bins, camera.width, camera.height, bg, plan.backend)
     ran.append("rasterize_rgb+depth" if plan.depth else "rasterize_rgb")
     out = {
         "image": accum[..., :3],

@@ -482,3 +482,18 @@ def test_render_without_camera_is_refused(extension, clean_scene, tmp_path):
     import_file(tmp_path / "in.ply")
     with pytest.raises(RuntimeError, match="no active camera"):
         bpy.ops.mlx3d.render()
+
+
+def test_headless_render(extension, clean_scene, tmp_path):
+    make_ply(tmp_path / "in.ply", n=100, extras=False)
+    import_file(tmp_path / "in.ply")
+    scene = bpy.context.scene
+    scene.render.resolution_x, scene.render.resolution_y = 32, 24
+    add_camera()
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "scene.blend"))
+    import importlib
+
+    headless = importlib.import_module(extension.__name__ + ".addon.headless")
+    code = headless.main(["render", "--blend", str(tmp_path / "scene.blend"), "--out", str(tmp_path / "out.png"), "--background", "1", "1", "1"])
+    assert code == 0 and (tmp_path / "out.png").exists()
+    assert tuple(bpy.data.images.load(str(tmp_path / "out.png")).size) == (32, 24)
