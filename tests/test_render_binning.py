@@ -3,7 +3,11 @@
 import numpy as np
 import pytest
 
+import mlx.core as mx
+
 from mlx3d.render import bin_gaussians
+from mlx3d.render.binning import tile_extents
+from mlx3d.render.raster_cpu import rasterize_cpu
 
 
 def brute_bins(means2d, radii, depths, width, height, tile):
@@ -48,3 +52,33 @@ def test_empty_and_all_culled():
 def test_bad_tile_size():
     with pytest.raises(ValueError, match="tile_size"):
         bin_gaussians(np.zeros((1, 2)), np.ones(1), np.ones(1), 8, 8, tile_size=0)
+
+
+def test_opacity_aware_extents_change_no_pixel():
+    """Tighter tile extents drop only entries every pixel would skip: identical images, fewer entries."""
+    rng = np.random.default_rng(3)
+    n, width, height = 400, 96, 80
+    means2d = mx.array(rng.uniform(0, 96, (n, 2)).astype(np.float32))
+    # random anisotropic covariances, some faint Gaussians (255·o <= 1 reaches no tile)
+    angle = rng.uniform(0, np.pi, n)
+    s1, s2 = rng.uniform(1, 12, n), rng.uniform(0.5, 3, n)
+    c, s_ = np.cos(angle), np.sin(angle)
+    cov = np.stack([c * c * s1**2 + s_ * s_ * s2**2, c * s_ * (s1**2 - s2**2), s_ * s_ * s1**2 + c * c * s2**2], 1) + [0.3, 0, 0.3]
+    det = cov[:, 0] * cov[:, 2] - cov[:, 1] ** 2
+    conics = mx.array(np.stack([cov[:, 2], -cov[:, 1], cov[:, 0]], 1).astype(np.float32) / det[:, None].astype(np.float32))
+    lam = 0.5 * (cov[:, 0] + cov[:, 2]) + np.sqrt(np.maximum(0.25 * (cov[:, 0] - cov[:, 2]) ** 2 + cov[:, 1] ** 2, 0.1))
+    radii = np.ceil(3 * np.sqrt(lam))
+    opac = rng.uniform(0.001, 0.99, n).astype(np.float32)
+    opac[:20] = 0.003
+    depths = rng.uniform(1, 5, n)
+    colors = mx.array(rng.uniform(0, 1, (n, 3)).astype(np.float32))
+    loose = bin_gaussians(means2d, radii, depths, width, height)
+    tight = bin_gaussians(means2d, radii, depths, width, height, conics=conics, opacities=opac)
+    assert tight.flatten_ids.size < loose.flatten_ids.size
+    assert not np.isin(np.arange(20), np.array(tight.flatten_ids)).any()
+    a = rasterize_cpu(means2d, conics, colors, mx.array(opac), loose.tile_offsets, loose.flatten_ids, width, height)
+    b = rasterize_cpu(means2d, conics, colors, mx.array(opac), tight.tile_offsets, tight.flatten_ids, width, height)
+    np.testing.assert_array_equal(np.array(a[0]), np.array(b[0]))
+    np.testing.assert_array_equal(np.array(a[1]), np.array(b[1]))
+    ext = tile_extents(radii, conics, opac)
+    assert (ext <= radii[:, None] + 1e-6).all()

@@ -7,6 +7,7 @@ namespace mlx3d {
 
 void bind_knn(nanobind::module_& m);
 void bind_gaussian_affine(nanobind::module_& m);
+void bind_binning(nanobind::module_& m);
 void bind_rasterize(nanobind::module_& m);
 
 }  // namespace mlx3d

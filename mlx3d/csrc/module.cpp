@@ -34,5 +34,6 @@ NB_MODULE(_core, m) {
 
   mlx3d::bind_knn(m);
   mlx3d::bind_gaussian_affine(m);
+  mlx3d::bind_binning(m);
   mlx3d::bind_rasterize(m);
 }

@@ -3,7 +3,14 @@
 A Gaussian with radius r > 0 and centre (mx, my) covers the tiles
 ``floor((mx ± r) / tile)`` × ``floor((my ± r) / tile)`` clipped to the image
 (inclusive). Intersections are sorted by tile id (row-major), then depth, then
-Gaussian index, with one 64-bit key sort. Not differentiable (indices only).
+Gaussian index (C++ in ``mlx3d._core.bin_tiles``). Not differentiable.
+
+Given ``conics`` and ``opacities``, each axis' half-extent is tightened to the
+box of the ellipse where the Gaussian can reach alpha = 1/255,
+``dᵀ Σ⁻¹ d ≤ 2 ln(255 o)``, i.e. ``sqrt(2 ln(255 o) Σxx)`` (+1 px for
+rounding), never beyond r. Outside it every pixel would skip the Gaussian
+anyway, so the image is unchanged while the rasterizer visits fewer entries;
+a Gaussian with 255·o ≤ 1 touches no tile.
 """
 
 from __future__ import annotations
@@ -13,7 +20,10 @@ from typing import NamedTuple
 import mlx.core as mx
 import numpy as np
 
+from .. import native
+
 TILE_SIZE = 16
+_ROUNDING_MARGIN = 1.0  # pixels
 
 
 class Bins(NamedTuple):
@@ -27,39 +37,33 @@ class Bins(NamedTuple):
     tile_size: int
 
 
-def _depth_key(depths: np.ndarray) -> np.ndarray:
-    """uint32 keys that sort like the float32 depths (IEEE-754 order trick)."""
-    bits = np.ascontiguousarray(depths, dtype=np.float32).view(np.uint32)
-    return np.where(bits & 0x80000000, ~bits, bits | 0x80000000).astype(np.uint64)
+def _np(a, dtype):
+    return np.ascontiguousarray(np.asarray(mx.stop_gradient(a) if isinstance(a, mx.array) else a), dtype=dtype)
 
 
-def bin_gaussians(means2d, radii, depths, width: int, height: int, tile_size: int = TILE_SIZE) -> Bins:
-    """Bin projected Gaussians into tiles. means2d (N,2), radii (N,) (0 = culled), depths (N,)."""
+def tile_extents(radii, conics=None, opacities=None) -> np.ndarray:
+    """(N,2) float32 half-extents in pixels used for binning (see the module docstring)."""
+    r = _np(radii, np.float64)
+    if conics is None or opacities is None:
+        return np.ascontiguousarray(np.stack([r, r], axis=1), dtype=np.float32)
+    con = _np(conics, np.float64)
+    o = _np(opacities, np.float64)
+    det = con[:, 0] * con[:, 2] - con[:, 1] ** 2
+    k = 2.0 * np.log(np.maximum(255.0 * o, 1e-30))
+    live = (r > 0) & (det > 0) & (k > 0)
+    inv = np.where(live, 1.0 / np.where(live, det, 1.0), 0.0)
+    ext = np.sqrt(np.maximum(k, 0.0)[:, None] * np.stack([con[:, 2] * inv, con[:, 0] * inv], axis=1)) + _ROUNDING_MARGIN
+    ext = np.minimum(ext, r[:, None])
+    return np.ascontiguousarray(np.where(live[:, None], ext, 0.0), dtype=np.float32)
+
+
+def bin_gaussians(means2d, radii, depths, width: int, height: int, tile_size: int = TILE_SIZE, conics=None, opacities=None) -> Bins:
+    """Bin projected Gaussians into tiles. means2d (N,2), radii (N,) (0 = culled), depths (N,);
+    with ``conics`` (N,3) and ``opacities`` (N,) the extents are tightened (same image)."""
     if tile_size < 1:
         raise ValueError(f"tile_size must be >= 1, got {tile_size}")
     tiles_x = -(-int(width) // tile_size)
     tiles_y = -(-int(height) // tile_size)
-    m = np.asarray(mx.stop_gradient(means2d) if isinstance(means2d, mx.array) else means2d, dtype=np.float64)
-    r = np.asarray(radii).astype(np.float64)
-    d = np.asarray(mx.stop_gradient(depths) if isinstance(depths, mx.array) else depths, dtype=np.float32)
-    live = np.flatnonzero(r > 0)
-    x0 = np.clip(np.floor((m[live, 0] - r[live]) / tile_size), 0, tiles_x).astype(np.int64)
-    x1 = np.clip(np.floor((m[live, 0] + r[live]) / tile_size) + 1, 0, tiles_x).astype(np.int64)
-    y0 = np.clip(np.floor((m[live, 1] - r[live]) / tile_size), 0, tiles_y).astype(np.int64)
-    y1 = np.clip(np.floor((m[live, 1] + r[live]) / tile_size) + 1, 0, tiles_y).astype(np.int64)
-    w, h = np.maximum(x1 - x0, 0), np.maximum(y1 - y0, 0)
-    counts = w * h
-    total = int(counts.sum())
-    num_tiles = tiles_x * tiles_y
-    if total == 0:
-        return Bins(mx.zeros(num_tiles + 1, dtype=mx.int32), mx.zeros(0, dtype=mx.int32), tiles_x, tiles_y, tile_size)
-    # one row per intersection: which Gaussian, and its index within that Gaussian's tile rectangle
-    owner = np.repeat(np.arange(live.size), counts)
-    local = np.arange(total) - np.repeat(np.cumsum(counts) - counts, counts)
-    tx = x0[owner] + local % w[owner]
-    ty = y0[owner] + local // w[owner]
-    tile = (ty * tiles_x + tx).astype(np.uint64)
-    order = np.argsort((tile << np.uint64(32)) | _depth_key(d[live])[owner], kind="stable")
-    flatten_ids = live[owner[order]].astype(np.int32)
-    offsets = np.searchsorted(tile[order], np.arange(num_tiles + 1, dtype=np.uint64)).astype(np.int32)
-    return Bins(mx.array(offsets), mx.array(flatten_ids), tiles_x, tiles_y, tile_size)
+    extents = tile_extents(radii, conics, opacities)
+    offsets, ids = native.core().bin_tiles(_np(means2d, np.float32).reshape(-1, 2), extents, _np(depths, np.float32).reshape(-1), int(width), int(height), tile_size)
+    return Bins(mx.array(offsets), mx.array(ids), tiles_x, tiles_y, tile_size)

@@ -107,7 +107,7 @@ def _project_and_bin(camera, means, quats, scales, opacities, plan: RenderPlan, 
     if plan.antialias:
         opac = opacities * proj.compensation
         ran.append("antialias_compensation")
-    bins = bin_gaussians(proj.means2d, proj.radii, proj.depths, camera.width, camera.height, tile_size)
+    bins = bin_gaussians(proj.means2d, proj.radii, proj.depths, camera.width, camera.height, tile_size, proj.conics, opac)
     ran.append("bin_tiles")
     return proj, opac, bins
 
