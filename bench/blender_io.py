@@ -21,6 +21,8 @@ import time
 
 import numpy as np
 
+from common import emit  # bench/ is on sys.path when run as a script
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 
 
@@ -92,10 +94,7 @@ def main() -> None:
     machine = f"{platform.machine()}, {os.cpu_count()} cores, Blender {bpy.app.version_string} (bpy module)"
     table = f"Blender import/export, {n:,} splats, SH degree 3 ({machine})\n\n| step | time (s) | target (s) |\n|---|---:|---:|\n"
     table += "".join(f"| {name} | {t:.2f} | {'' if target is None else f'{target:.0f}'} |\n" for name, t, target in rows)
-    print(table)
-    if args.markdown:
-        with open(args.markdown, "w") as f:
-            f.write(table)
+    emit(table, args.markdown)
 
 
 if __name__ == "__main__":

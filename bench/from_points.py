@@ -18,18 +18,10 @@ import subprocess
 import sys
 import time
 
+from common import emit, peak_rss_mb  # bench/ is on sys.path when run as a script
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 GARDEN = os.path.join(HERE, "..", "..", "shared", "data", "test_garden.npz")
-
-
-def _peak_rss_mb() -> float:
-    with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) / 1024.0
-    import resource
-
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def _child(case: str, n: int, max_ref: int) -> None:
@@ -46,12 +38,12 @@ def _child(case: str, n: int, max_ref: int) -> None:
 
     from mlx3d.splatting import GaussianModel
 
-    base = _peak_rss_mb()
+    base = peak_rss_mb()
     t0 = time.perf_counter()
     model = GaussianModel.from_points(points, colors, scale_init_max_ref=max_ref)
     mx.eval(*model.params.values())
     seconds = time.perf_counter() - t0
-    print(json.dumps({"n": len(points), "seconds": seconds, "peak_mb": _peak_rss_mb(), "base_mb": base}))
+    print(json.dumps({"n": len(points), "seconds": seconds, "peak_mb": peak_rss_mb(), "base_mb": base}))
 
 
 def main() -> None:
@@ -80,10 +72,7 @@ def main() -> None:
     body = "".join(f"| {c} | {n:,} | {ref:,} | {s:.2f} | {p:.0f} | {d:.0f} |\n" for c, n, ref, s, p, d in rows)
     machine = f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"
     table = f"`GaussianModel.from_points` ({machine})\n\n" + header + body
-    print(table)
-    if args.markdown:
-        with open(args.markdown, "w") as f:
-            f.write(table)
+    emit(table, args.markdown)
 
 
 if __name__ == "__main__":

@@ -24,6 +24,8 @@ import subprocess
 import sys
 import time
 
+from common import emit, peak_rss_mb  # bench/ is on sys.path when run as a script
+
 SCENES = {
     "sparse-10k": (10_000, 512, 512, (0.01, 0.05)),
     "hd-100k": (100_000, 1280, 720, (0.003, 0.02)),
@@ -32,14 +34,6 @@ SCENES = {
 }
 PATHS = ("reference", "cpu-1", "cpu-all")
 REFERENCE_SCENES = ("sparse-10k", "dense-20k")  # the reference path is too slow for the large ones
-
-
-def _peak_mb() -> float:
-    with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) / 1024.0
-    return float("nan")
 
 
 def _make_scene(name):
@@ -105,7 +99,7 @@ def _child(scene: str, path: str, repeat: int) -> None:
 
     bins = bin_gaussians(out["means2d"], out["radii"], out["depths"], cam.width, cam.height, conics=out["conics"], opacities=inputs[3])
     per_pixel = bins.flatten_ids.size * 256 / (cam.width * cam.height)
-    print(json.dumps({"fwd_ms": fwd_ms, "fwd_sd": fwd_sd, "bwd_ms": bwd_ms, "bwd_sd": bwd_sd, "peak_mb": _peak_mb(), "per_pixel": per_pixel}))
+    print(json.dumps({"fwd_ms": fwd_ms, "fwd_sd": fwd_sd, "bwd_ms": bwd_ms, "bwd_sd": bwd_sd, "peak_mb": peak_rss_mb(), "per_pixel": per_pixel}))
 
 
 def main() -> None:
@@ -170,10 +164,7 @@ def main() -> None:
         checks.append(f"mem-100k forward+backward peak RSS: {mem:.0f} MB (target <= 300)")
     lines += [f"- {c}" for c in checks]
     table = "\n".join(lines) + "\n"
-    print(table)
-    if args.markdown:
-        with open(args.markdown, "w") as f:
-            f.write(table)
+    emit(table, args.markdown)
 
 
 if __name__ == "__main__":
