@@ -16,7 +16,7 @@ import bpy
 
 from mlx3d.errors import Mlx3dError
 
-from . import workflows
+from . import capture, workflows
 
 
 def _print(messages) -> None:
@@ -86,6 +86,18 @@ def cmd_render(args) -> None:
     _print(workflows.render_splats(list(scene.objects), scene, antialias=args.antialias, background=args.background, filepath=args.out)[1])
 
 
+def cmd_capture(args) -> None:
+    from mlx3d.progress import ProgressLine
+
+    bpy.ops.wm.open_mainfile(filepath=args.blend)
+    _, messages = capture.capture_dataset(
+        args.out, objects=args.objects or None, use_scene_cameras=args.scene_cameras, num_views=args.views,
+        radius=args.radius, elevations_deg=args.elevations, resolution=tuple(args.resolution), samples=args.samples,
+        num_points=args.points, test_every=args.test_every, seed=args.seed, progress=ProgressLine("capture"),
+    )
+    _print(messages)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="blender_splat", description="Gaussian splat workflows in Blender, headless.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -136,6 +148,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-gaussians", type=int, default=None)
     p.add_argument("--min-opacity", type=float, default=0.0)
     p.add_argument("--target-sh-degree", type=int, choices=(0, 1, 2, 3), default=None)
+
+    text = "Render the meshes of a .blend with Cycles into a training dataset (images, transforms.json, COLMAP model, points)."
+    p = sub.add_parser("capture", help=text, description=text)
+    p.set_defaults(func=cmd_capture)
+    p.add_argument("--blend", required=True, metavar="IN.blend")
+    p.add_argument("--out", required=True, metavar="DIR")
+    p.add_argument("--objects", nargs="*", metavar="NAME", help="mesh objects to capture (default: every visible mesh)")
+    p.add_argument("--scene-cameras", action="store_true", help="render from the scene's cameras instead of an orbit")
+    p.add_argument("--views", type=int, default=72, help="orbit views (default 72)")
+    p.add_argument("--radius", type=float, default=None, help="orbit radius (default 2.2 x the bounding-sphere radius)")
+    p.add_argument("--elevations", type=float, nargs="+", default=[-10.0, 20.0, 45.0], metavar="DEG", help="elevation rings (default -10 20 45)")
+    p.add_argument("--resolution", type=int, nargs=2, default=(256, 256), metavar=("W", "H"))
+    p.add_argument("--samples", type=int, default=32, help="Cycles samples per pixel (default 32)")
+    p.add_argument("--points", type=int, default=20000, help="initial points sampled on the surfaces (default 20000)")
+    p.add_argument("--test-every", type=int, default=8, help="hold out every n-th frame (0: none; default 8)")
+    p.add_argument("--seed", type=int, default=0)
     return parser
 
 

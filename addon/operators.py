@@ -9,10 +9,10 @@ from __future__ import annotations
 import os
 
 import bpy
-from bpy.props import BoolProperty, CollectionProperty, EnumProperty, FloatProperty, FloatVectorProperty, IntProperty, StringProperty
+from bpy.props import BoolProperty, CollectionProperty, EnumProperty, FloatProperty, FloatVectorProperty, IntProperty, IntVectorProperty, StringProperty
 from bpy_extras.io_utils import ExportHelper, ImportHelper
 
-from . import ellipsoids, workflows
+from . import capture, ellipsoids, workflows
 from .splat_object import is_splat_object
 
 SH_ITEMS = [("FILE", "As in file", "Keep every SH coefficient of the file")] + [(str(d), f"Degree {d}", f"Truncate or zero-pad SH to degree {d}") for d in range(4)]
@@ -272,6 +272,137 @@ class MLX3D_OT_render(bpy.types.Operator):
         return {"FINISHED"}
 
 
+# Folder settings that may start with "//" (relative to the .blend); Blender 5.0 asks for the flag.
+BLEND_RELATIVE_PATH = {"PATH_SUPPORTS_BLEND_RELATIVE"} if bpy.app.version >= (5, 0, 0) else set()
+
+
+class MLX3D_OT_capture_dataset(bpy.types.Operator):
+    """Render the scene's meshes from an orbit of cameras (or the scene cameras) with Cycles into a training dataset: images, transforms.json, a COLMAP model and initial points. Esc cancels and keeps the views rendered so far"""
+
+    bl_idname = "mlx3d.capture_dataset"
+    bl_label = "Capture Dataset"
+    bl_options = {"REGISTER"}
+
+    directory: StringProperty(name="Folder", subtype="DIR_PATH", default="", description="Output folder of the dataset", options=BLEND_RELATIVE_PATH)
+    selected_only: BoolProperty(name="Selected only", default=False, description="Capture the selected meshes (else every visible mesh)")
+    use_scene_cameras: BoolProperty(name="Scene cameras", default=False, description="Render from the scene's cameras instead of an orbit")
+    num_views: IntProperty(name="Views", default=72, min=1, description="Orbit views, spread over the elevation rings")
+    radius: FloatProperty(name="Radius", default=0.0, min=0.0, subtype="DISTANCE", description="Orbit radius (0: 2.2 x the bounding-sphere radius)")
+    elevations: StringProperty(name="Elevations", default="-10, 20, 45", description="Elevation rings in degrees, comma separated")
+    resolution: IntVectorProperty(name="Resolution", size=2, default=(256, 256), min=4, description="Image width and height in pixels")
+    samples: IntProperty(name="Samples", default=32, min=1, description="Cycles samples per pixel")
+    num_points: IntProperty(name="Points", default=20000, min=1, description="Initial points sampled on the surfaces")
+    test_every: IntProperty(name="Test every", default=8, min=0, description="Hold out every n-th frame for testing (0: none)")
+    seed: IntProperty(name="Seed", default=0, min=0, description="Seed of the point sampling")
+
+    _session = None
+    _timer = None
+    _area = None
+
+    @classmethod
+    def poll(cls, context):
+        return context.scene is not None
+
+    def _session_kwargs(self, context):
+        if not self.directory:
+            raise capture.CaptureError("choose an output folder for the dataset")
+        try:
+            elevations = [float(v) for v in self.elevations.replace(";", ",").split(",") if v.strip()]
+        except ValueError:
+            raise capture.CaptureError(f"elevations must be numbers separated by commas, got '{self.elevations}'") from None
+        objects = None
+        if self.selected_only:
+            objects = [o for o in context.selected_objects if o.type == "MESH"]
+            if not objects:
+                raise capture.CaptureError("no mesh objects selected")
+        return dict(
+            objects=objects, use_scene_cameras=self.use_scene_cameras, num_views=self.num_views,
+            radius=self.radius or None, elevations_deg=elevations, resolution=tuple(self.resolution), samples=self.samples,
+            num_points=self.num_points, test_every=self.test_every, seed=self.seed,
+        )
+
+    def execute(self, context):
+        try:
+            kwargs = self._session_kwargs(context)
+            with _Progress(context) as progress:
+                _, messages = capture.capture_dataset(bpy.path.abspath(self.directory), scene=context.scene, progress=progress, **kwargs)
+        except (ValueError, OSError, RuntimeError) as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        _report_all(self, messages)
+        return {"FINISHED"}
+
+    def invoke(self, context, event):
+        if context.window is None:  # no event loop (background): render everything now
+            return self.execute(context)
+        try:
+            kwargs = self._session_kwargs(context)
+            self._session = capture.CaptureSession(bpy.path.abspath(self.directory), scene=context.scene, view_layer=context.view_layer, **kwargs)
+            self._session.start()
+        except (ValueError, OSError, RuntimeError) as exc:
+            if self._session is not None:
+                self._session.close()
+                self._session = None
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        wm = context.window_manager
+        self._timer = wm.event_timer_add(0.01, window=context.window)
+        wm.modal_handler_add(self)
+        wm.progress_begin(0, self._session.total)
+        self._area = context.area
+        self._header(f"Capturing dataset: view 0 of {self._session.total} (Esc to cancel)")
+        return {"RUNNING_MODAL"}
+
+    def _header(self, text):
+        try:
+            if self._area is not None:
+                self._area.header_text_set(text)
+        except ReferenceError:
+            self._area = None
+
+    def _end(self, context, cancelled=False, error=None):
+        wm = context.window_manager
+        if self._timer is not None:
+            wm.event_timer_remove(self._timer)
+            self._timer = None
+        wm.progress_end()
+        self._header(None)
+        session, self._session = self._session, None
+        messages = []
+        try:
+            session.close()
+            if error is None:
+                _, messages = session.finish(cancelled=cancelled)
+        except (ValueError, OSError, RuntimeError) as exc:
+            error = error or str(exc)
+        if error is not None:
+            self.report({"ERROR"}, error)
+            return {"CANCELLED"}
+        _report_all(self, messages)
+        return {"CANCELLED"} if cancelled else {"FINISHED"}
+
+    def modal(self, context, event):
+        if self._session is None:
+            return {"CANCELLED"}
+        if event.type == "ESC" and event.value == "PRESS":
+            return self._end(context, cancelled=True)
+        if event.type != "TIMER":
+            return {"RUNNING_MODAL"}  # keep the scene still while capturing
+        try:
+            done = self._session.step()
+        except (ValueError, OSError, RuntimeError) as exc:
+            return self._end(context, error=str(exc))
+        context.window_manager.progress_update(done)
+        self._header(f"Capturing dataset: view {done} of {self._session.total} (Esc to cancel)")
+        if self._session.done:
+            return self._end(context)
+        return {"RUNNING_MODAL"}
+
+    def cancel(self, context):
+        if self._session is not None:
+            self._end(context, cancelled=True)
+
+
 class MLX3D_FH_gaussian_splat_ply(bpy.types.FileHandler):
     """Drag and drop .ply files onto the 3D viewport to import them as splats"""
 
@@ -303,5 +434,6 @@ CLASSES = (
     MLX3D_OT_compact,
     MLX3D_OT_show_ellipsoids,
     MLX3D_OT_render,
+    MLX3D_OT_capture_dataset,
     MLX3D_FH_gaussian_splat_ply,
 )

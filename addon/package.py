@@ -94,6 +94,13 @@ PROVIDED_BY_BLENDER = frozenset({"numpy"})
 #: Bundled dependencies (besides mlx and its library wheel) that are pure Python.
 PURE_PYTHON = frozenset({"plyfile"})
 
+#: Bundled compiled dependencies (one wheel per Python and platform): the platform
+#: part of their wheel file names as published for the pinned version, per Blender
+#: platform. ``pip download --platform`` gets the last tag of a compound one.
+BINARY_WHEEL_TAGS = {
+    "pillow": {"linux-x64": "manylinux_2_27_x86_64.manylinux_2_28_x86_64", "macos-arm64": "macosx_11_0_arm64"},
+}
+
 #: Sources of our wheel: a wheel older than any of these is rebuilt.
 SOURCE_INPUTS = ("pyproject.toml", "CMakeLists.txt", "mlx3d")
 
@@ -145,6 +152,7 @@ class Wheel:
     requirement: str | None  # what ``pip download`` fetches; None for our own wheel
     python: tuple[int, int] | None  # the Python it is for; None when any
     platform: str | None  # Blender platform; None when any
+    pip_platform: str | None = None  # ``pip download --platform`` tag; None when any
 
 
 @dataclasses.dataclass
@@ -213,10 +221,10 @@ def read_pins(pyproject: Path = PYPROJECT) -> Pins:
         name, version = _normalise(match.group(1)), match.group(2)
         if name in PROVIDED_BY_BLENDER:
             continue
-        if name != "mlx" and name not in PURE_PYTHON:
+        if name != "mlx" and name not in PURE_PYTHON and name not in BINARY_WHEEL_TAGS:
             raise PackagingError(
                 f"{pyproject.name}: dependency {requirement!r} is neither bundled nor provided by Blender; "
-                "add it to PURE_PYTHON or PROVIDED_BY_BLENDER in addon/package.py"
+                "add it to PURE_PYTHON, BINARY_WHEEL_TAGS or PROVIDED_BY_BLENDER in addon/package.py"
             )
         if not version:
             raise PackagingError(f"{pyproject.name}: bundled dependency {requirement!r} must be pinned with ==")
@@ -244,10 +252,13 @@ def expected_wheels(pins: Pins, platforms, pythons) -> list[Wheel]:
         plat = PLATFORMS[plat_name]
         for python in pythons:
             tag = _py_tag(python)
-            add(Wheel(f"mlx-{mlx}-{tag}-{tag}-{plat.mlx_tag}.whl", f"mlx=={mlx}", python, plat.name))
+            add(Wheel(f"mlx-{mlx}-{tag}-{tag}-{plat.mlx_tag}.whl", f"mlx=={mlx}", python, plat.name, plat.mlx_tag))
             add(Wheel(f"{pins.own_name}-{pins.own_version}-{tag}-{tag}-{plat.own_tag}.whl", None, python, plat.name))
+            for name in sorted(BINARY_WHEEL_TAGS.keys() & pins.bundled.keys()):
+                version, wheel_tag = pins.bundled[name], BINARY_WHEEL_TAGS[name][plat.name]
+                add(Wheel(f"{name}-{version}-{tag}-{tag}-{wheel_tag}.whl", f"{name}=={version}", python, plat.name, wheel_tag.split(".")[-1]))
         add(Wheel(f"{_normalise(plat.mlx_library)}-{mlx}-py3-none-{plat.mlx_tag}.whl",
-                  f"{plat.mlx_library}=={mlx}", None, plat.name))
+                  f"{plat.mlx_library}=={mlx}", None, plat.name, plat.mlx_tag))
     for name in sorted(PURE_PYTHON & pins.bundled.keys()):
         version = pins.bundled[name]
         add(Wheel(f"{name}-{version}-py3-none-any.whl", f"{name}=={version}", None, None))
@@ -306,8 +317,7 @@ def download_wheels(wheels: list[Wheel], pythons) -> None:
     groups: dict[tuple, list[Wheel]] = {}
     for w in todo:
         python = w.python or pythons[0]
-        plat = PLATFORMS[w.platform].mlx_tag if w.platform else None
-        groups.setdefault((python, plat), []).append(w)
+        groups.setdefault((python, w.pip_platform), []).append(w)
     for (python, plat_tag), group in groups.items():
         with tempfile.TemporaryDirectory(dir=WHEELS_DIR, prefix=".download-") as tmp:
             cmd = [sys.executable, "-m", "pip", "download", "--quiet", "--only-binary=:all:", "--no-deps",

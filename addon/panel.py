@@ -25,6 +25,14 @@ class MLX3D_PG_settings(bpy.types.PropertyGroup):
     render_antialias: BoolProperty(name="Antialias", default=False)
     render_background: bpy.props.FloatVectorProperty(name="Background", subtype="COLOR", size=3, min=0.0, max=1.0, default=(0.0, 0.0, 0.0))
     render_path: bpy.props.StringProperty(name="Save to", subtype="FILE_PATH", default="")
+    capture_dir: bpy.props.StringProperty(name="Folder", subtype="DIR_PATH", default="", description="Output folder of the dataset", options=operators.BLEND_RELATIVE_PATH)
+    capture_views: IntProperty(name="Views", default=72, min=1, description="Orbit views, spread over the elevation rings")
+    capture_radius: FloatProperty(name="Radius", default=0.0, min=0.0, subtype="DISTANCE", description="Orbit radius (0: 2.2 x the bounding-sphere radius)")
+    capture_resolution: bpy.props.IntVectorProperty(name="Resolution", size=2, default=(256, 256), min=4)
+    capture_samples: IntProperty(name="Samples", default=32, min=1, description="Cycles samples per pixel")
+    capture_points: IntProperty(name="Points", default=20000, min=1, description="Initial points sampled on the surfaces")
+    capture_scene_cameras: BoolProperty(name="Scene cameras", default=False, description="Render from the scene's cameras instead of an orbit")
+    capture_selected_only: BoolProperty(name="Selected only", default=False, description="Capture the selected meshes (else every visible mesh)")
 
 
 _info_cache: dict = {}
@@ -108,6 +116,25 @@ class VIEW3D_PT_mlx3d_splats(bpy.types.Panel):
         col.prop(settings, "render_path")
         op = col.operator(operators.MLX3D_OT_render.bl_idname, icon="RENDER_STILL")
         op.antialias, op.background, op.filepath = settings.render_antialias, settings.render_background, settings.render_path
+
+        col = layout.column(align=True)
+        col.label(text="Capture dataset")
+        col.prop(settings, "capture_dir")
+        col.prop(settings, "capture_scene_cameras")
+        sub = col.column(align=True)
+        sub.enabled = not settings.capture_scene_cameras
+        sub.prop(settings, "capture_views")
+        sub.prop(settings, "capture_radius")
+        col.prop(settings, "capture_resolution")
+        col.prop(settings, "capture_samples")
+        col.prop(settings, "capture_points")
+        col.prop(settings, "capture_selected_only")
+        row = col.row()
+        row.enabled = bool(settings.capture_dir)
+        op = row.operator(operators.MLX3D_OT_capture_dataset.bl_idname, icon="RENDER_ANIMATION")
+        op.directory, op.use_scene_cameras, op.num_views = settings.capture_dir, settings.capture_scene_cameras, settings.capture_views
+        op.radius, op.resolution, op.samples = settings.capture_radius, settings.capture_resolution, settings.capture_samples
+        op.num_points, op.selected_only = settings.capture_points, settings.capture_selected_only
 
 
 CLASSES = (MLX3D_PG_settings, VIEW3D_PT_mlx3d_splats)

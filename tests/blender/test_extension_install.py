@@ -39,7 +39,7 @@ def test_manifest_fields():
 def test_manifest_wheels_follow_the_pins(package_script):
     package = package_script
     pins = package.read_pins()
-    assert set(pins.bundled) == {"mlx", "plyfile"}  # numpy comes with Blender
+    assert set(pins.bundled) == {"mlx", "plyfile", "pillow"}  # numpy comes with Blender
     want = package.manifest_wheel_paths(package.expected_wheels(pins, package.PLATFORMS, package.DEFAULT_PYTHONS))
     assert manifest()["wheels"] == want, "stale wheels list: run `make extension`"
     names = " ".join(want)
@@ -47,6 +47,8 @@ def test_manifest_wheels_follow_the_pins(package_script):
         assert f"mlx-{pins.bundled['mlx']}-{py}-{py}-manylinux_2_35_x86_64.whl" in names
         assert f"mlx3d_splat-{pins.own_version}-{py}-{py}-linux_x86_64.whl" in names
         assert f"-{py}-{py}-macosx_14_0_arm64.whl" in names
+        assert f"pillow-{pins.bundled['pillow']}-{py}-{py}-manylinux_2_27_x86_64.manylinux_2_28_x86_64.whl" in names
+        assert f"pillow-{pins.bundled['pillow']}-{py}-{py}-macosx_11_0_arm64.whl" in names
     assert "numpy" not in names
 
 
