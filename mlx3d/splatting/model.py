@@ -22,6 +22,7 @@ keeps them aligned so nothing of a file is lost on a round trip.
 from __future__ import annotations
 
 import math
+import warnings
 from typing import Iterable, Sequence
 
 import mlx.core as mx
@@ -283,6 +284,29 @@ class GaussianModel:
         out = self.copy()
         out.params["sh_rest"] = resize_sh_rest(out.params["sh_rest"], degree)
         return out
+
+    # ------------------------------------------------------------ density control
+    def densify_and_prune(self, grad_accum, grad_count, grad_threshold: float = 0.0002, scene_extent: float = 1.0, percent_dense: float = 0.01, min_opacity: float = 0.005, optimizer=None, **kwargs) -> dict:
+        """Clone/split/prune in place (see ``mlx3d.training.density``); returns the counts.
+
+        ``optimizer`` (an ``mlx3d.training.Adam``) has its moments edited in step.
+        Rows change, so extra PLY properties cannot follow: they are dropped with a warning."""
+        from ..training.density import densify_and_prune
+
+        self.params, counts = densify_and_prune(self.params, grad_accum, grad_count, grad_threshold, scene_extent, percent_dense, min_opacity, optimizer, **kwargs)
+        self._drop_extra("densify_and_prune")
+        return counts
+
+    def reset_opacities(self, max_opacity: float = 0.01, optimizer=None) -> None:
+        """Clamp opacities to at most ``max_opacity`` (3DGS's periodic reset), in place."""
+        from ..training.density import reset_opacities
+
+        self.params = reset_opacities(self.params, optimizer, max_opacity)
+
+    def _drop_extra(self, why: str) -> None:
+        if self.extra:
+            warnings.warn(f"{why}: extra properties {sorted(self.extra)} dropped (rows changed)", stacklevel=3)
+        self.extra = {}
 
     # ------------------------------------------------------------ rendering
     def render(self, camera, background=None, antialias: bool = False, projection: str = "auto", render_depth: bool = False, sh_degree: int | None = None, **kwargs) -> dict:

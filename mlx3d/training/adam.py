@@ -1,0 +1,83 @@
+"""Adam with one learning rate per parameter and row-editable state.
+
+Density control adds, removes and resets Gaussians; their Adam moments must
+follow (3DGS zeroes the moments of new and reset rows). ``select``,
+``append`` and ``reset_rows`` edit parameters and moments together, so there
+is one place that keeps them aligned.
+"""
+
+from __future__ import annotations
+
+import mlx.core as mx
+import numpy as np
+
+
+class Adam:
+    """Adam (Kingma & Ba) over a dict of (N, ...) arrays, learning rate per name.
+
+    betas and eps as in 3DGS (0.9, 0.999, 1e-15). ``lrs`` maps each parameter
+    name to its learning rate; a name missing from ``lrs`` (or with lr 0) is
+    not updated.
+    """
+
+    def __init__(self, lrs: dict, betas=(0.9, 0.999), eps: float = 1e-15):
+        self.lrs = dict(lrs)
+        self.b1, self.b2 = betas
+        self.eps = eps
+        self.step_count = 0
+        self.m: dict = {}
+        self.v: dict = {}
+
+    def update(self, params: dict, grads: dict) -> dict:
+        """New params after one step (moments are created on first use)."""
+        self.step_count += 1
+        c1 = 1.0 - self.b1**self.step_count
+        c2 = 1.0 - self.b2**self.step_count
+        out = dict(params)
+        for name, g in grads.items():
+            lr = self.lrs.get(name, 0.0)
+            if not lr:
+                continue
+            m = self.m.get(name, mx.zeros_like(g))
+            v = self.v.get(name, mx.zeros_like(g))
+            m = self.b1 * m + (1 - self.b1) * g
+            v = self.b2 * v + (1 - self.b2) * g * g
+            self.m[name], self.v[name] = m, v
+            out[name] = params[name] - lr * (m / c1) / (mx.sqrt(v / c2) + self.eps)
+        return out
+
+    def select(self, keep: np.ndarray) -> None:
+        """Keep moment rows ``keep`` (indices) for every parameter."""
+        idx = mx.array(np.asarray(keep, dtype=np.int64))
+        self.m = {k: v[idx] for k, v in self.m.items()}
+        self.v = {k: v[idx] for k, v in self.v.items()}
+
+    def append(self, count: int) -> None:
+        """Append ``count`` zero moment rows (new Gaussians start with fresh state)."""
+        for state in (self.m, self.v):
+            for k, v in state.items():
+                state[k] = mx.concatenate([v, mx.zeros((count,) + tuple(v.shape[1:]), dtype=v.dtype)], axis=0)
+
+    def reset_rows(self, name: str, rows: np.ndarray) -> None:
+        """Zero the moments of ``rows`` of parameter ``name`` (e.g. after an opacity reset)."""
+        if name not in self.m:
+            return
+        mask = np.zeros(self.m[name].shape[0], bool)
+        mask[np.asarray(rows, dtype=np.int64)] = True
+        shape = (-1,) + (1,) * (self.m[name].ndim - 1)
+        keep = mx.array(~mask).reshape(shape)
+        self.m[name] = mx.where(keep, self.m[name], 0.0)
+        self.v[name] = mx.where(keep, self.v[name], 0.0)
+
+    def state_dict(self) -> dict:
+        """numpy copy of the state (for checkpoints)."""
+        out = {"step_count": np.array(self.step_count)}
+        for prefix, state in (("m", self.m), ("v", self.v)):
+            for k, v in state.items():
+                out[f"{prefix}/{k}"] = np.array(v)
+        return out
+
+    def load_state_dict(self, state: dict) -> None:
+        self.step_count = int(state["step_count"])
+        self.m = {k[2:]: mx.array(v) for k, v in state.items() if k.startswith("m/")}
+        self.v = {k[2:]: mx.array(v) for k, v in state.items() if k.startswith("v/")}

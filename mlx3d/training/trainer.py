@@ -1,0 +1,266 @@
+"""Training Gaussians against images: ``TrainerConfig`` and ``GaussianTrainer``.
+
+One step renders a view, compares it with the target (L1 + λ·D-SSIM),
+differentiates w.r.t. the raw parameters and the 2D means (through a zero
+offset, see ``render_gaussians(means2d_offset=...)``) and takes an Adam step
+with 3DGS's per-parameter learning rates. Schedules (SH degree increase,
+densification, opacity reset) are pure functions of the step so they can be
+tested and inspected (``events_at``).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import asdict, dataclass, field
+
+import mlx.core as mx
+import numpy as np
+
+from ..errors import Mlx3dError
+from ..render import render_gaussians
+from ..splatting.model import PARAM_NAMES, GaussianModel
+from .adam import Adam
+from .density import densify_and_prune, reset_opacities
+from .metrics import photometric_loss, psnr
+
+
+class TrainingError(Mlx3dError, RuntimeError):
+    """Training cannot go on (NaN/Inf loss or parameters); the message says where."""
+
+
+@dataclass
+class TrainerConfig:
+    """Settings of a training run; defaults follow 3DGS for 30k steps."""
+
+    method: str = "vanilla"  # 'vanilla' (adaptive density control); 'mcmc' and '2dgs' are not implemented yet
+    steps: int = 30_000
+    lambda_dssim: float = 0.2
+    background: object = "black"  # 'black' | 'white' | 'random' | (r, g, b)
+    antialias: bool = False
+    projection: str = "auto"  # 'auto' | 'ewa' | 'ut'
+    sh_degree_interval: int = 1000  # raise the active SH degree every this many steps
+    # learning rates (means: initial and final, scaled by the scene extent, log-linear decay)
+    means_lr: float = 1.6e-4
+    means_lr_final: float = 1.6e-6
+    scales_lr: float = 5e-3
+    quats_lr: float = 1e-3
+    opacities_lr: float = 5e-2
+    sh_dc_lr: float = 2.5e-3
+    sh_rest_lr: float = 2.5e-3 / 20
+    # adaptive density control
+    densify_from: int = 500
+    densify_until: int = 15_000
+    densify_every: int = 100
+    opacity_reset_every: int = 3000
+    grad_threshold: float = 2e-4
+    percent_dense: float = 0.01
+    prune_opacity: float = 0.005
+    max_screen_size: float = 20.0  # pixels, applied after the first opacity reset
+    max_gaussians: int | None = None
+    seed: int = 0
+    low_memory: bool = False  # clear MLX's buffer cache after densification
+    cache_limit_gb: float | None = None
+    checkpoint_every: int = 0  # 0: only on request
+    checkpoint_dir: str | None = None
+    extra: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        if self.method != "vanilla":
+            raise ValueError(f"method {self.method!r} is not available yet; use 'vanilla'")
+        if self.steps < 1:
+            raise ValueError(f"steps must be >= 1, got {self.steps}")
+
+
+def events_at(config: TrainerConfig, step: int) -> tuple:
+    """Schedule events after step ``step`` (1-based): 'sh_up', 'densify', 'reset_opacity'."""
+    events = []
+    if config.sh_degree_interval and step % config.sh_degree_interval == 0:
+        events.append("sh_up")
+    if config.densify_from < step <= config.densify_until:
+        if step % config.densify_every == 0:
+            events.append("densify")
+        if config.opacity_reset_every and step % config.opacity_reset_every == 0:
+            events.append("reset_opacity")
+    return tuple(events)
+
+
+class GaussianTrainer:
+    """Optimises a ``GaussianModel`` in place.
+
+    scene_extent: radius of the camera centres (the dataset's ``scene_extent()``);
+    it scales the means learning rate and the densification thresholds.
+    """
+
+    def __init__(self, model: GaussianModel, config: TrainerConfig | None = None, scene_extent: float = 1.0, num_images: int = 0):
+        self.model = model
+        self.config = config or TrainerConfig()
+        self.scene_extent = float(scene_extent)
+        self.step_count = 0
+        self.active_sh_degree = 0
+        self.rng = np.random.default_rng(self.config.seed)
+        self.optimizer = Adam(self.learning_rates())
+        self._reset_stats()
+        self.opacity_resets = 0
+        if self.config.cache_limit_gb is not None:
+            mx.set_cache_limit(int(self.config.cache_limit_gb * 2**30))
+
+    # ------------------------------------------------------------------ schedules
+    def learning_rates(self) -> dict:
+        """Per-parameter learning rates at the current step."""
+        c = self.config
+        t = min(self.step_count / max(c.steps, 1), 1.0)
+        means_lr = math.exp((1 - t) * math.log(c.means_lr) + t * math.log(c.means_lr_final)) * self.scene_extent
+        return {
+            "means": means_lr,
+            "scales": c.scales_lr,
+            "quats": c.quats_lr,
+            "opacities": c.opacities_lr,
+            "sh_dc": c.sh_dc_lr,
+            "sh_rest": c.sh_rest_lr,
+        }
+
+    def _reset_stats(self):
+        n = len(self.model)
+        self.grad_accum = np.zeros(n)
+        self.grad_count = np.zeros(n)
+        self.max_radii = np.zeros(n)
+
+    def _background(self):
+        bg = self.config.background
+        if bg == "black":
+            return (0.0, 0.0, 0.0)
+        if bg == "white":
+            return (1.0, 1.0, 1.0)
+        if bg == "random":
+            return tuple(self.rng.uniform(0, 1, 3))
+        return tuple(bg)
+
+    # ------------------------------------------------------------------ one step
+    def step(self, camera, target, weight=None, background=None) -> dict:
+        """One optimisation step on one view. target (H,W,3) in [0,1]; weight (H,W) or None.
+
+        background: colour composited behind the render (defaults to the config's,
+        which must match how the target was composited). Returns logging info.
+        """
+        c = self.config
+        bg = self._background() if background is None else tuple(background)
+        target = mx.array(target, dtype=mx.float32)
+        mask = None if weight is None else mx.array(weight, dtype=mx.float32)
+        params = self.model.params
+        n = len(self.model)
+        degree = min(self.active_sh_degree, self.model.sh_degree)
+
+        def loss_fn(p, offset):
+            sh = mx.concatenate([p["sh_dc"], p["sh_rest"]], axis=1)
+            out = render_gaussians(
+                camera, p["means"], p["quats"], mx.exp(p["scales"]), mx.sigmoid(p["opacities"]), sh=sh, sh_degree=degree,
+                background=bg, antialias=c.antialias, projection=c.projection, means2d_offset=offset,
+            )
+            return photometric_loss(out["image"], target, c.lambda_dssim, mask), out
+
+        (loss, out), (grads, grad2d) = mx.value_and_grad(loss_fn, argnums=(0, 1))(params, mx.zeros((n, 2)))
+        mx.eval(loss, grads, grad2d)
+        loss_value = float(loss)
+        if not math.isfinite(loss_value) or not all(bool(mx.all(mx.isfinite(g))) for g in grads.values()):
+            raise TrainingError(f"step {self.step_count + 1}: the loss or a gradient is not finite (loss {loss_value}); parameters left at the last good step")
+
+        self.optimizer.lrs = self.learning_rates()
+        self.model.params = self.optimizer.update(params, grads)
+        self.step_count += 1
+
+        # screen-space gradient in NDC units (as 3DGS's threshold expects)
+        visible = np.array(out["visible"])
+        g = np.array(grad2d, dtype=np.float64) * [0.5 * camera.width, 0.5 * camera.height]
+        self.grad_accum[visible] += np.linalg.norm(g[visible], axis=1)
+        self.grad_count[visible] += 1
+        self.max_radii = np.maximum(self.max_radii, np.array(out["radii"]))
+
+        info = {"step": self.step_count, "loss": loss_value, "psnr": float(psnr(mx.clip(out["image"], 0, 1), target, mask)), "num_gaussians": n}
+        for event in events_at(c, self.step_count):
+            info[event] = self._apply_event(event)
+        return info
+
+    def _apply_event(self, event: str):
+        c = self.config
+        if event == "sh_up":
+            self.active_sh_degree = min(self.active_sh_degree + 1, self.model.sh_degree)
+            return self.active_sh_degree
+        if event == "densify":
+            params, counts = densify_and_prune(
+                self.model.params, self.grad_accum, self.grad_count, c.grad_threshold, self.scene_extent, c.percent_dense,
+                c.prune_opacity, self.optimizer, c.max_screen_size if self.opacity_resets else None, self.max_radii,
+                c.max_gaussians, self.rng,
+            )
+            self._set_params(params)
+            return counts
+        if event == "reset_opacity":
+            self.model.params = reset_opacities(self.model.params, self.optimizer)
+            self.opacity_resets += 1
+            return True
+        raise ValueError(event)
+
+    def _set_params(self, params: dict):
+        """Replace the model's parameters after a change of count."""
+        self.model.params = params
+        self.model._drop_extra("densification")
+        self._reset_stats()
+        if self.config.low_memory:
+            mx.clear_cache()
+
+    # ------------------------------------------------------------------ loop
+    def fit(self, dataset, steps: int | None = None, progress=None, should_stop=None) -> list:
+        """Train on ``dataset.train`` views in random order; returns per-step info.
+
+        progress(done, total, info) is called after every step; should_stop()
+        is polled to cancel (the model keeps the last completed step).
+        """
+        steps = self.config.steps if steps is None else steps
+        train = list(dataset.train)
+        if not train:
+            raise ValueError("the dataset has no training views")
+        history = []
+        for i in range(steps):
+            if should_stop is not None and should_stop():
+                break
+            index = train[int(self.rng.integers(len(train)))]
+            colour = self._background()  # the target is composited on the colour the render uses
+            image, weight = dataset.load_image(index, background=colour, rng=self.rng)
+            info = self.step(dataset.frames[index].camera, image, weight, background=colour)
+            history.append(info)
+            if self.config.checkpoint_every and self.config.checkpoint_dir and self.step_count % self.config.checkpoint_every == 0:
+                self.save_checkpoint(os.path.join(self.config.checkpoint_dir, "checkpoint.npz"))
+            if progress is not None:
+                progress(i + 1, steps, info)
+        return history
+
+    # ------------------------------------------------------------------ checkpoints
+    def save_checkpoint(self, path) -> None:
+        """Parameters, optimizer state, step and schedule state in one .npz (written atomically)."""
+        from ..io.atomic import atomic_write
+
+        state = {f"param/{k}": np.array(v) for k, v in self.model.params.items()}
+        state.update({f"adam/{k}": v for k, v in self.optimizer.state_dict().items()})
+        state.update(
+            step=np.array(self.step_count), active_sh_degree=np.array(self.active_sh_degree), opacity_resets=np.array(self.opacity_resets),
+            grad_accum=self.grad_accum, grad_count=self.grad_count, max_radii=self.max_radii, scene_extent=np.array(self.scene_extent),
+        )
+        with atomic_write(path) as f:
+            np.savez(f, **state)
+
+    @classmethod
+    def load_checkpoint(cls, path, config: TrainerConfig | None = None) -> "GaussianTrainer":
+        """A trainer resuming exactly where ``save_checkpoint`` left off."""
+        with np.load(path) as data:
+            state = {k: data[k] for k in data.files}
+        model = GaussianModel({k: mx.array(state[f"param/{k}"]) for k in PARAM_NAMES})
+        trainer = cls(model, config, float(state["scene_extent"]))
+        trainer.optimizer.load_state_dict({k[5:]: v for k, v in state.items() if k.startswith("adam/")})
+        trainer.step_count = int(state["step"])
+        trainer.active_sh_degree = int(state["active_sh_degree"])
+        trainer.opacity_resets = int(state["opacity_resets"])
+        trainer.grad_accum, trainer.grad_count, trainer.max_radii = state["grad_accum"], state["grad_count"], state["max_radii"]
+        return trainer
+
+    def config_dict(self) -> dict:
+        return asdict(self.config)

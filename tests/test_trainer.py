@@ -1,0 +1,218 @@
+"""Training: schedules, learning rates, Adam, density control, loss decrease, guards, checkpoints."""
+
+import math
+
+import mlx.core as mx
+import numpy as np
+import pytest
+
+from mlx3d.cameras import Camera
+from mlx3d.splatting import GaussianModel
+from mlx3d.training.adam import Adam
+from mlx3d.training.density import densify_and_prune, reset_opacities
+from mlx3d.training.trainer import GaussianTrainer, TrainerConfig, TrainingError, events_at
+
+
+# ------------------------------------------------------------------ schedules
+def test_events_fire_on_the_right_steps():
+    c = TrainerConfig()
+    fired = {e: [s for s in range(1, 20001) if e in events_at(c, s)] for e in ("sh_up", "densify", "reset_opacity")}
+    assert fired["sh_up"] == list(range(1000, 20001, 1000))
+    assert fired["densify"] == list(range(600, 15001, 100))
+    assert fired["reset_opacity"] == [3000, 6000, 9000, 12000, 15000]
+
+
+def test_means_learning_rate_decays_log_linearly_with_scene_extent():
+    model = GaussianModel.from_points(np.random.default_rng(0).normal(size=(20, 3)))
+    trainer = GaussianTrainer(model, TrainerConfig(steps=100), scene_extent=3.0)
+    lrs = []
+    for step in (0, 50, 100):
+        trainer.step_count = step
+        lrs.append(trainer.learning_rates()["means"])
+    assert lrs[0] == pytest.approx(1.6e-4 * 3.0)
+    assert lrs[2] == pytest.approx(1.6e-6 * 3.0)
+    assert lrs[1] == pytest.approx(math.sqrt(lrs[0] * lrs[2]))
+    assert trainer.learning_rates()["sh_rest"] == pytest.approx(2.5e-3 / 20)
+
+
+def test_unimplemented_methods_are_refused():
+    with pytest.raises(ValueError, match="mcmc"):
+        TrainerConfig(method="mcmc")
+
+
+# ------------------------------------------------------------------ Adam
+def test_adam_matches_reference_and_edits_rows():
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(6, 2)).astype(np.float32)
+    opt = Adam({"x": 0.1}, eps=1e-8)
+    params = {"x": mx.array(x)}
+    m = np.zeros_like(x, dtype=np.float64)
+    v = np.zeros_like(m)
+    ref = x.astype(np.float64)
+    for t in range(1, 6):
+        g = 2 * ref  # gradient of sum(x^2)
+        params = opt.update(params, {"x": 2 * params["x"]})
+        m = 0.9 * m + 0.1 * g
+        v = 0.999 * v + 0.001 * g * g
+        ref = ref - 0.1 * (m / (1 - 0.9**t)) / (np.sqrt(v / (1 - 0.999**t)) + 1e-8)
+    np.testing.assert_allclose(np.array(params["x"]), ref, rtol=1e-5, atol=1e-6)
+    m_before = np.array(opt.m["x"])
+    opt.select(np.array([4, 1]))
+    np.testing.assert_array_equal(np.array(opt.m["x"]), m_before[[4, 1]])
+    opt.append(3)
+    assert opt.m["x"].shape == (5, 2) and not np.array(opt.m["x"])[2:].any()
+    opt.reset_rows("x", np.array([0]))
+    assert not np.array(opt.v["x"])[0].any() and np.array(opt.v["x"])[1].any()
+
+
+# ------------------------------------------------------------------ density control
+def crafted_params():
+    """Six Gaussians: small/large x high/low gradient, one transparent, one huge."""
+    n = 6
+    scales = np.log(np.array([0.005, 0.005, 0.5, 0.5, 0.005, 2.0]))[:, None].repeat(3, 1)
+    params = {
+        "means": np.arange(n * 3, dtype=np.float32).reshape(n, 3),
+        "scales": scales.astype(np.float32),
+        "quats": np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
+        "opacities": np.float32([2, 2, 2, 2, -8, 2]),  # row 4: sigmoid(-8) < 0.005
+        "sh_dc": np.zeros((n, 1, 3), np.float32),
+        "sh_rest": np.zeros((n, 3, 3), np.float32),
+    }
+    grads = np.array([1e-3, 1e-5, 1e-3, 1e-5, 1e-5, 1e-5])
+    return {k: mx.array(v) for k, v in params.items()}, grads
+
+
+def test_clone_split_prune():
+    params, grads = crafted_params()
+    opt = Adam({k: 1.0 for k in params})
+    opt.update(params, {k: mx.ones_like(v) for k, v in params.items()})  # non-zero moments
+    out, counts = densify_and_prune(params, grads, np.ones(6), grad_threshold=2e-4, scene_extent=1.0, percent_dense=0.01, min_opacity=0.005, optimizer=opt)
+    assert counts == {"cloned": 1, "split": 1, "pruned": 1}
+    # kept originals 0,1,3,5 in order, then the clone of 0, then two children of 2
+    means = np.array(out["means"])
+    np.testing.assert_array_equal(means[:4], np.array(params["means"])[[0, 1, 3, 5]])
+    np.testing.assert_array_equal(means[4], np.array(params["means"])[0])
+    children_scales = np.exp(np.array(out["scales"])[5:])
+    np.testing.assert_allclose(children_scales, 0.5 / 1.6, rtol=1e-6)
+    assert np.abs(means[5:] - np.array(params["means"])[2]).max() < 0.5 * 5  # drawn from the parent's Gaussian
+    assert opt.m["means"].shape[0] == out["means"].shape[0] == 7
+    m = np.array(opt.m["means"])
+    assert m[:4].all() and not m[4:].any()  # kept rows keep their moments, new rows start at zero
+
+
+def test_screen_size_pruning_and_growth_cap():
+    params, grads = crafted_params()
+    out, counts = densify_and_prune(params, grads, np.ones(6), scene_extent=1.0, max_screen_size=20.0, max_radii=np.array([1, 1, 1, 30, 1, 1]))
+    # row 3 too large on screen, row 4 transparent, and larger than 0.1 * extent in the world:
+    # rows 3 and 5 and both children of the split row 2 (0.5 / 1.6 > 0.1)
+    assert counts == {"cloned": 1, "split": 1, "pruned": 5}
+    assert out["means"].shape[0] == 3  # rows 0, 1 and the clone of 0
+    out, counts = densify_and_prune(params, grads, np.ones(6), max_gaussians=7)
+    assert counts["cloned"] + counts["split"] == 1
+
+
+def test_reset_opacities_caps_and_clears_moments():
+    params, _ = crafted_params()
+    opt = Adam({k: 1.0 for k in params})
+    opt.update(params, {k: mx.ones_like(v) for k, v in params.items()})
+    out = reset_opacities(params, opt, 0.01)
+    assert (1 / (1 + np.exp(-np.array(out["opacities"]))) <= 0.01 + 1e-7).all()
+    assert not np.array(opt.m["opacities"]).any() and np.array(opt.m["means"]).any()
+
+
+# ------------------------------------------------------------------ training
+def small_problem(seed=0):
+    rng = np.random.default_rng(seed)
+    truth = GaussianModel.from_points(rng.uniform(-0.6, 0.6, (60, 3)).astype(np.float32), rng.uniform(0, 1, (60, 3)), sh_degree=1, initial_opacity=0.8)
+    cams = [Camera.look_at(eye=(3 * math.cos(a), 3 * math.sin(a), 0.5), at=(0, 0, 0), width=40, height=32, fov=45.0) for a in np.linspace(0, 2 * math.pi, 6, endpoint=False)]
+    targets = [np.array(truth.render(c, background=(0, 0, 0))["image"]) for c in cams]
+    start = GaussianModel.from_points(np.asarray(truth.means) + rng.normal(0, 0.05, (60, 3)).astype(np.float32), sh_degree=1, initial_opacity=0.3)
+    return start, cams, targets
+
+
+def test_training_reduces_the_loss():
+    model, cams, targets = small_problem()
+    trainer = GaussianTrainer(model, TrainerConfig(steps=300, densify_from=10_000, seed=1), scene_extent=3.0)
+    first = np.mean([trainer.step(c, t)["loss"] for c, t in zip(cams, targets)])
+    for i in range(294):
+        info = trainer.step(cams[i % 6], targets[i % 6])
+    last = np.mean([trainer.step(c, t)["loss"] for c, t in zip(cams, targets)])
+    assert last < 0.5 * first, (first, last)
+    assert info["psnr"] > 20
+
+
+def test_densification_fires_inside_training():
+    model, cams, targets = small_problem(1)
+    config = TrainerConfig(steps=20, densify_from=2, densify_every=4, densify_until=20, opacity_reset_every=10, grad_threshold=1e-7, sh_degree_interval=5)
+    trainer = GaussianTrainer(model, config, scene_extent=3.0)
+    infos = [trainer.step(cams[i % 6], targets[i % 6]) for i in range(12)]
+    assert [i["step"] for i in infos if "densify" in i] == [4, 8, 12]
+    assert [i["step"] for i in infos if "reset_opacity" in i] == [10]
+    assert [i["sh_up"] for i in infos if "sh_up" in i] == [1, 1]  # capped at the model's degree
+    assert infos[4]["num_gaussians"] > 60  # grew after the densification at step 4
+    assert trainer.optimizer.m["means"].shape[0] == len(trainer.model)
+
+
+def test_nan_guard_keeps_the_last_good_parameters():
+    model, cams, targets = small_problem(2)
+    trainer = GaussianTrainer(model, TrainerConfig(steps=10), scene_extent=3.0)
+    trainer.step(cams[0], targets[0])
+    before = {k: np.array(v) for k, v in trainer.model.params.items()}
+    bad = targets[1].copy()
+    bad[0, 0, 0] = np.nan
+    with pytest.raises(TrainingError, match="not finite"):
+        trainer.step(cams[1], bad)
+    for k, v in trainer.model.params.items():
+        np.testing.assert_array_equal(np.array(v), before[k])
+
+
+def test_checkpoint_resume_is_exact(tmp_path):
+    model, cams, targets = small_problem(3)
+    config = TrainerConfig(steps=30, densify_from=4, densify_every=5, grad_threshold=1e-7, sh_degree_interval=4)
+    a = GaussianTrainer(model, config, scene_extent=3.0)
+    for i in range(6):
+        a.step(cams[i % 6], targets[i % 6])
+    a.save_checkpoint(tmp_path / "ck.npz")
+    b = GaussianTrainer.load_checkpoint(tmp_path / "ck.npz", config)
+    b.rng = np.random.default_rng(123)
+    a.rng = np.random.default_rng(123)
+    for i in range(6, 12):
+        a.step(cams[i % 6], targets[i % 6])
+        b.step(cams[i % 6], targets[i % 6])
+    assert a.step_count == b.step_count == 12 and a.active_sh_degree == b.active_sh_degree
+    for k in a.model.params:
+        np.testing.assert_array_equal(np.array(a.model.params[k]), np.array(b.model.params[k]))
+
+
+def test_model_methods_delegate_and_warn_about_extras():
+    params, grads = crafted_params()
+    model = GaussianModel(params, extra={"id": np.arange(6, dtype=np.int32)})
+    with pytest.warns(UserWarning, match="id"):
+        counts = model.densify_and_prune(grads, np.ones(6))
+    assert counts == {"cloned": 1, "split": 1, "pruned": 1} and len(model) == 7 and not model.extra
+    model.reset_opacities(0.01)
+    assert (np.array(model.opacities) <= 0.01 + 1e-7).all()
+
+
+def test_fit_on_a_dataset_folder_with_progress_and_cancel(tmp_path):
+    import json
+
+    from PIL import Image
+
+    from mlx3d.datasets import load_dataset
+
+    model, cams, targets = small_problem(4)
+    frames = []
+    for i, (cam, img) in enumerate(zip(cams, targets)):
+        Image.fromarray((np.clip(img, 0, 1) * 255).round().astype(np.uint8)).save(tmp_path / f"f{i}.png")
+        frames.append({"file_path": f"f{i}.png", "transform_matrix": cam.to_opengl_c2w().tolist()})
+    c = cams[0]
+    meta = {"camera_model": "PINHOLE", "fl_x": c.fx, "fl_y": c.fy, "cx": c.cx, "cy": c.cy, "w": c.width, "h": c.height, "frames": frames}
+    (tmp_path / "transforms.json").write_text(json.dumps(meta))
+    dataset = load_dataset(tmp_path)
+    assert len(dataset.train) == 5  # frame 0 held out (every 8th)
+    trainer = GaussianTrainer(model, TrainerConfig(steps=40, densify_from=10_000), scene_extent=dataset.scene_extent())
+    seen = []
+    history = trainer.fit(dataset, progress=lambda done, total, info: seen.append((done, total)), should_stop=lambda: len(seen) >= 25)
+    assert len(history) == 25 and seen[-1] == (25, 40)  # cancelled after 25 of 40 steps
+    assert history[-1]["loss"] < history[0]["loss"]
