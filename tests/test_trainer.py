@@ -9,7 +9,7 @@ import pytest
 from mlx3d.cameras import Camera
 from mlx3d.splatting import GaussianModel
 from mlx3d.training.adam import Adam
-from mlx3d.training.density import densify_and_prune, reset_opacities
+from mlx3d.training.density import add_gaussians_mcmc, densify_and_prune, relocate_dead, relocation_correction, reset_opacities, sgld_noise
 from mlx3d.training.trainer import GaussianTrainer, TrainerConfig, TrainingError, events_at
 
 
@@ -36,8 +36,8 @@ def test_means_learning_rate_decays_log_linearly_with_scene_extent():
 
 
 def test_unimplemented_methods_are_refused():
-    with pytest.raises(ValueError, match="mcmc"):
-        TrainerConfig(method="mcmc")
+    with pytest.raises(ValueError, match="2dgs"):
+        TrainerConfig(method="2dgs")
 
 
 # ------------------------------------------------------------------ Adam
@@ -216,3 +216,86 @@ def test_fit_on_a_dataset_folder_with_progress_and_cancel(tmp_path):
     history = trainer.fit(dataset, progress=lambda done, total, info: seen.append((done, total)), should_stop=lambda: len(seen) >= 25)
     assert len(history) == 25 and seen[-1] == (25, 40)  # cancelled after 25 of 40 steps
     assert history[-1]["loss"] < history[0]["loss"]
+
+
+
+# ------------------------------------------------------------------ MCMC
+@pytest.mark.parametrize("copies", [2, 3, 6])
+def test_relocation_correction_preserves_the_rendered_gaussian(copies):
+    """N stacked copies with the paper's opacity/scale correction render like the original."""
+    from mlx3d.render import render_gaussians
+
+    cam = Camera.look_at(eye=(0, -3, 0), at=(0, 0, 0), width=48, height=48, fov=40.0)
+    o, s = 0.7, np.array([[0.15, 0.15, 0.15]])
+    new_o, new_s = relocation_correction(np.array([o]), s, np.array([copies]))
+    assert 1 - (1 - new_o[0]) ** copies == pytest.approx(o)  # same peak alpha
+
+    def render(n, opacity, scale):
+        out = render_gaussians(cam, mx.zeros((n, 3)), mx.array(np.tile([1.0, 0, 0, 0], (n, 1)).astype(np.float32)),
+                               mx.array(np.tile(scale, (n, 1)).astype(np.float32)), mx.full((n,), float(opacity)),
+                               colors=mx.ones((n, 3)), backend="reference")
+        return np.array(out["alpha"])
+
+    one, many, naive = render(1, o, s), render(copies, new_o[0], new_s), render(copies, o, s)
+    # approximate, as the paper says (its formula ignores the 1/255 cut-off and the 2D blur)
+    assert np.abs(one - many).max() < 0.04
+    assert abs(one.sum() - many.sum()) < 0.08 * one.sum()  # measured 2.9%, 3.7%, 5.5% for N = 2, 3, 6
+    assert np.abs(one - many).sum() < 0.3 * np.abs(one - naive).sum()  # far better than plain copies
+
+
+def test_relocate_dead_and_grow():
+    rng = np.random.default_rng(0)
+    n = 50
+    params = {
+        "means": mx.array(rng.normal(size=(n, 3)).astype(np.float32)),
+        "scales": mx.array(np.full((n, 3), -2.0, np.float32)),
+        "quats": mx.array(np.tile(np.float32([1, 0, 0, 0]), (n, 1))),
+        "opacities": mx.array(np.where(np.arange(n) < 10, -9.0, 1.0).astype(np.float32)),  # 10 dead
+        "sh_dc": mx.zeros((n, 1, 3)),
+        "sh_rest": mx.zeros((n, 3, 3)),
+    }
+    opt = Adam({k: 1.0 for k in params})
+    opt.update(params, {k: mx.ones_like(v) for k, v in params.items()})
+    out, moved = relocate_dead(params, opt, min_opacity=0.005, rng=rng)
+    assert moved == 10 and out["means"].shape[0] == n
+    opacity = 1 / (1 + np.exp(-np.array(out["opacities"])))
+    assert (opacity > 0.005).all()
+    means = np.array(out["means"])
+    src_means = np.array(params["means"])[10:]
+    for row in range(10):  # every relocated Gaussian sits on a live source
+        assert np.isclose(np.abs(src_means - means[row]).sum(axis=1), 0).any()
+    assert not np.array(opt.m["means"])[:10].any()
+    grown, added = add_gaussians_mcmc(out, opt, cap=53, growth=0.05, rng=rng)
+    assert added == 2 and grown["means"].shape[0] == 52 == opt.m["means"].shape[0]  # int(50 * 1.05) = 52 <= cap
+    capped, added = add_gaussians_mcmc(grown, opt, cap=52, growth=0.05, rng=rng)
+    assert added == 0
+
+
+def test_sgld_noise_moves_only_transparent_gaussians():
+    n = 200
+    params = {
+        "means": mx.zeros((n, 3)),
+        "scales": mx.full((n, 3), math.log(0.1)),
+        "quats": mx.array(np.tile(np.float32([1, 0, 0, 0]), (n, 1))),
+        "opacities": mx.array(np.where(np.arange(n) < 100, 6.0, -8.0).astype(np.float32)),
+    }
+    moved = np.abs(np.array(sgld_noise(params, lr_means=1e-4, noise_scale=5e5, rng=np.random.default_rng(1))))
+    assert moved[:100].max() < 1e-6  # opacity 0.9975: gate ~ 0
+    opacity = 1 / (1 + math.exp(8.0))
+    gate = 1 / (1 + math.exp(-100 * ((1 - opacity) - 0.995)))  # ≈ 0.61 at opacity 3.4e-4
+    expected_std = gate * 0.1**2 * 5e5 * 1e-4  # Σ z, gated and scaled: std of each coordinate
+    assert 0.8 * expected_std < moved[100:].mean() * math.sqrt(math.pi / 2) < 1.2 * expected_std  # E|x| = σ sqrt(2/π)
+
+
+def test_mcmc_schedule_and_training():
+    c = TrainerConfig(method="mcmc")
+    assert events_at(c, 600) == ("relocate", "grow") and "reset_opacity" not in events_at(c, 3000)
+    model, cams, targets = small_problem(5)
+    config = TrainerConfig(method="mcmc", steps=200, densify_from=10, densify_every=20, densify_until=200, max_gaussians=80)
+    trainer = GaussianTrainer(model, config, scene_extent=3.0)
+    first = np.mean([trainer.step(c, t)["loss"] for c, t in zip(cams, targets)])
+    infos = [trainer.step(cams[i % 6], targets[i % 6]) for i in range(194)]
+    last = np.mean([trainer.step(c, t)["loss"] for c, t in zip(cams, targets)])
+    assert last < 0.6 * first
+    assert [i["step"] for i in infos if "grow" in i][:2] == [20, 40]
+    assert len(trainer.model) <= 80 and len(trainer.model) > 60

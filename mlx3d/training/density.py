@@ -114,3 +114,121 @@ def reset_opacities(params: dict, optimizer=None, max_opacity: float = 0.01) -> 
     if optimizer is not None:
         optimizer.reset_rows("opacities", np.arange(params["opacities"].shape[0]))
     return out
+
+
+# --------------------------------------------------------------------------- MCMC (3DGS as MCMC)
+MCMC_MAX_COPIES = 51  # size of the paper's binomial table: N is clamped to 1..51
+
+
+def relocation_correction(opacity: np.ndarray, scale: np.ndarray, copies: np.ndarray):
+    """Opacity and scale for each of N copies of a Gaussian so that together they render
+    about like the original (Kheradmand et al. 2024, eq. 9):
+
+        o' = 1 - (1 - o)^(1/N)
+        s' = o / (Σ_{i=1..N} Σ_{k=0..i-1} C(i-1, k) (-1)^k o'^(k+1) / sqrt(k+1)) · s
+
+    opacity (M,) in (0,1), scale (M,3) std-devs, copies (M,) >= 1 (clamped to 51).
+    """
+    n = np.clip(np.asarray(copies, dtype=np.int64), 1, MCMC_MAX_COPIES)
+    o = np.clip(np.asarray(opacity, dtype=np.float64), 1e-12, 1 - 1e-12)
+    new_o = 1.0 - (1.0 - o) ** (1.0 / n)
+    binom = np.zeros((MCMC_MAX_COPIES, MCMC_MAX_COPIES))
+    for i in range(MCMC_MAX_COPIES):
+        for k in range(i + 1):
+            binom[i, k] = math.comb(i, k)
+    denom = np.zeros_like(o)
+    for j in range(len(o)):
+        total = 0.0
+        for i in range(1, n[j] + 1):
+            k = np.arange(i)
+            total += float(np.sum(binom[i - 1, :i] * (-1.0) ** k * new_o[j] ** (k + 1) / np.sqrt(k + 1)))
+        denom[j] = total
+    new_scale = (o / denom)[:, None] * np.asarray(scale, dtype=np.float64)
+    return new_o, new_scale
+
+
+def _sample_by_opacity(opacity: np.ndarray, count: int, rng) -> np.ndarray:
+    p = np.asarray(opacity, dtype=np.float64)
+    p = p / p.sum()
+    return rng.choice(len(p), size=count, replace=True, p=p)
+
+
+def _apply_copies(params: dict, optimizer, sources: np.ndarray, targets: np.ndarray) -> dict:
+    """Copy ``sources`` rows onto ``targets`` rows (and into themselves) with the corrected
+    opacity/scale for the number of copies each source now has; zero their moments."""
+    n = params["means"].shape[0]
+    copies = np.bincount(sources, minlength=n) + 1  # the source itself plus its new copies
+    srcs = np.unique(sources)
+    opacity = 1.0 / (1.0 + np.exp(-np.array(params["opacities"], dtype=np.float64)))
+    scales = np.exp(np.array(params["scales"], dtype=np.float64))
+    new_o, new_s = relocation_correction(opacity[srcs], scales[srcs], copies[srcs])
+    logit = np.log(new_o / (1.0 - new_o))
+    out = {k: np.array(v) for k, v in params.items()}
+    out["opacities"][srcs] = logit
+    out["scales"][srcs] = np.log(new_s)
+    for k in out:
+        out[k][targets] = out[k][sources]
+    if optimizer is not None:
+        rows = np.concatenate([srcs, targets])
+        for k in out:
+            optimizer.reset_rows(k, rows)
+    return {k: mx.array(v.astype(np.float32)) for k, v in out.items()}
+
+
+def relocate_dead(params: dict, optimizer=None, min_opacity: float = 0.005, rng=None, max_frac: float = 1.0, jitter_scale: float = 0.0) -> tuple[dict, int]:
+    """Move Gaussians with opacity ≤ ``min_opacity`` onto live ones sampled in proportion to
+    opacity, correcting opacity and scale for the copies. N stays constant.
+
+    max_frac: at most this fraction of N moves per call (the most transparent first);
+    jitter_scale: moved copies are offset by that many of their standard deviations in a
+    random direction (0: on top of their source, as in the paper). Returns (params, moved)."""
+    rng = rng or np.random.default_rng(0)
+    n = params["means"].shape[0]
+    opacity = 1.0 / (1.0 + np.exp(-np.array(params["opacities"], dtype=np.float64)))
+    dead = np.flatnonzero(opacity <= min_opacity)
+    alive = np.flatnonzero(opacity > min_opacity)
+    limit = int(max_frac * n)
+    if dead.size > limit:
+        dead = np.sort(dead[np.argsort(opacity[dead], kind="stable")[:limit]])
+    if dead.size == 0 or alive.size == 0:
+        return params, 0
+    sources = alive[_sample_by_opacity(opacity[alive], dead.size, rng)]
+    out = _apply_copies(params, optimizer, sources, dead)
+    if jitter_scale > 0:
+        rot = np.array(quaternion_to_matrix(np.array(out["quats"], dtype=np.float64)[dead]))
+        std = np.exp(np.array(out["scales"], dtype=np.float64)[dead])
+        offset = np.einsum("nij,nj->ni", rot, jitter_scale * std * rng.normal(size=std.shape))
+        means = np.array(out["means"], dtype=np.float64)
+        means[dead] += offset
+        out["means"] = mx.array(means.astype(np.float32))
+    return out, int(dead.size)
+
+
+def add_gaussians_mcmc(params: dict, optimizer=None, cap: int | None = None, growth: float = 0.05, rng=None) -> tuple[dict, int]:
+    """Grow by ``growth`` (fraction of N, up to ``cap``): new Gaussians are copies of ones
+    sampled in proportion to opacity, with the copy correction. Returns (params, added)."""
+    rng = rng or np.random.default_rng(0)
+    n = params["means"].shape[0]
+    target = int(n * (1.0 + growth)) if cap is None else min(int(cap), int(n * (1.0 + growth)))
+    add = max(target - n, 0)
+    if add == 0:
+        return params, 0
+    opacity = 1.0 / (1.0 + np.exp(-np.array(params["opacities"], dtype=np.float64)))
+    sources = _sample_by_opacity(opacity, add, rng)
+    grown = _concat(params, _take(params, sources))
+    if optimizer is not None:
+        optimizer.append(add)
+    return _apply_copies(grown, optimizer, sources, np.arange(n, n + add)), add
+
+
+def sgld_noise(params: dict, lr_means: float, noise_scale: float = 5e5, rng=None) -> mx.array:
+    """MCMC position noise: N(0, Σ) scaled by ``noise_scale · lr_means`` and gated by
+    opacity with sigmoid(100 · ((1 - o) - 0.995)), so only near-transparent Gaussians move much."""
+    rng = rng or np.random.default_rng(0)
+    opacity = mx.sigmoid(params["opacities"])
+    gate = mx.sigmoid(100.0 * ((1.0 - opacity) - 0.995))
+    rot = quaternion_to_matrix(params["quats"])
+    std = mx.exp(params["scales"])
+    z = mx.array(rng.normal(size=tuple(params["means"].shape)).astype(np.float32))
+    noise = (rot @ ((std * std) * z)[..., None])[..., 0]  # Σ z with Σ = R S² Rᵀ, since Rᵀ z' ~ z for isotropic z
+    return params["means"] + noise * (gate * noise_scale * lr_means)[:, None]

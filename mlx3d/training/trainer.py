@@ -21,7 +21,7 @@ from ..errors import Mlx3dError
 from ..render import render_gaussians
 from ..splatting.model import PARAM_NAMES, GaussianModel
 from .adam import Adam
-from .density import densify_and_prune, reset_opacities
+from .density import add_gaussians_mcmc, densify_and_prune, relocate_dead, reset_opacities, sgld_noise
 from .metrics import photometric_loss, psnr
 
 
@@ -33,7 +33,7 @@ class TrainingError(Mlx3dError, RuntimeError):
 class TrainerConfig:
     """Settings of a training run; defaults follow 3DGS for 30k steps."""
 
-    method: str = "vanilla"  # 'vanilla' (adaptive density control); 'mcmc' and '2dgs' are not implemented yet
+    method: str = "vanilla"  # 'vanilla' (adaptive density control) | 'mcmc' (3DGS as MCMC); '2dgs' is not implemented yet
     steps: int = 30_000
     lambda_dssim: float = 0.2
     background: object = "black"  # 'black' | 'white' | 'random' | (r, g, b)
@@ -57,7 +57,15 @@ class TrainerConfig:
     percent_dense: float = 0.01
     prune_opacity: float = 0.005
     max_screen_size: float = 20.0  # pixels, applied after the first opacity reset
-    max_gaussians: int | None = None
+    max_gaussians: int | None = None  # vanilla: stops growth; mcmc: the cap it grows to
+    # 3DGS as Markov Chain Monte Carlo (method='mcmc'); relocation/growth run on the densify schedule
+    mcmc_min_opacity: float = 0.005  # "dead" below this opacity
+    mcmc_relocate_frac: float = 1.0  # at most this fraction of N relocated per event
+    mcmc_growth: float = 0.05  # growth per event (fraction of N) up to max_gaussians
+    mcmc_jitter_scale: float = 0.0  # offset of relocated copies, in their standard deviations
+    mcmc_noise_scale: float = 5e5  # SGLD noise, times the means learning rate
+    mcmc_opacity_reg: float = 0.01
+    mcmc_scale_reg: float = 0.01
     seed: int = 0
     low_memory: bool = False  # clear MLX's buffer cache after densification
     cache_limit_gb: float | None = None
@@ -66,18 +74,23 @@ class TrainerConfig:
     extra: dict = field(default_factory=dict)
 
     def __post_init__(self):
-        if self.method != "vanilla":
-            raise ValueError(f"method {self.method!r} is not available yet; use 'vanilla'")
+        if self.method not in ("vanilla", "mcmc"):
+            raise ValueError(f"method {self.method!r} is not available; use 'vanilla' or 'mcmc'")
         if self.steps < 1:
             raise ValueError(f"steps must be >= 1, got {self.steps}")
 
 
 def events_at(config: TrainerConfig, step: int) -> tuple:
-    """Schedule events after step ``step`` (1-based): 'sh_up', 'densify', 'reset_opacity'."""
+    """Schedule events after step ``step`` (1-based): 'sh_up', and 'densify' and
+    'reset_opacity' (vanilla) or 'relocate' and 'grow' (mcmc)."""
     events = []
     if config.sh_degree_interval and step % config.sh_degree_interval == 0:
         events.append("sh_up")
     if config.densify_from < step <= config.densify_until:
+        if config.method == "mcmc":
+            if step % config.densify_every == 0:
+                events += ["relocate", "grow"]
+            return tuple(events)
         if step % config.densify_every == 0:
             events.append("densify")
         if config.opacity_reset_every and step % config.opacity_reset_every == 0:
@@ -157,7 +170,10 @@ class GaussianTrainer:
                 camera, p["means"], p["quats"], mx.exp(p["scales"]), mx.sigmoid(p["opacities"]), sh=sh, sh_degree=degree,
                 background=bg, antialias=c.antialias, projection=c.projection, means2d_offset=offset,
             )
-            return photometric_loss(out["image"], target, c.lambda_dssim, mask), out
+            loss = photometric_loss(out["image"], target, c.lambda_dssim, mask)
+            if c.method == "mcmc":
+                loss = loss + c.mcmc_opacity_reg * mx.mean(mx.sigmoid(p["opacities"])) + c.mcmc_scale_reg * mx.mean(mx.exp(p["scales"]))
+            return loss, out
 
         (loss, out), (grads, grad2d) = mx.value_and_grad(loss_fn, argnums=(0, 1))(params, mx.zeros((n, 2)))
         mx.eval(loss, grads, grad2d)
@@ -167,6 +183,8 @@ class GaussianTrainer:
 
         self.optimizer.lrs = self.learning_rates()
         self.model.params = self.optimizer.update(params, grads)
+        if c.method == "mcmc":
+            self.model.params["means"] = sgld_noise(self.model.params, self.optimizer.lrs["means"], c.mcmc_noise_scale, self.rng)
         self.step_count += 1
 
         # screen-space gradient in NDC units (as 3DGS's threshold expects)
@@ -194,6 +212,15 @@ class GaussianTrainer:
             )
             self._set_params(params)
             return counts
+        if event == "relocate":
+            params, moved = relocate_dead(self.model.params, self.optimizer, c.mcmc_min_opacity, self.rng, c.mcmc_relocate_frac, c.mcmc_jitter_scale)
+            self.model.params = params
+            return moved
+        if event == "grow":
+            params, added = add_gaussians_mcmc(self.model.params, self.optimizer, c.max_gaussians, c.mcmc_growth, self.rng) if c.max_gaussians else (self.model.params, 0)
+            if added:
+                self._set_params(params)
+            return added
         if event == "reset_opacity":
             self.model.params = reset_opacities(self.model.params, self.optimizer)
             self.opacity_resets += 1
