@@ -1,4 +1,4 @@
-"""The ``mlx3d`` command line: inspect, compact, clean, transform and merge 3DGS PLY files.
+"""The ``mlx3d`` command line: inspect, compact, clean, transform, merge, train and evaluate.
 
 Exit codes: 0 success, 1 bad input or failed work (the message says what),
 2 bad command-line usage, 130 cancelled with Ctrl+C. Outputs are written
@@ -151,6 +151,91 @@ def cmd_merge(args) -> None:
     _save(out, args.output)
 
 
+class TrainProgress:
+    """Progress line for training: step, loss, PSNR, Gaussians, steps/s, ETA (about every 2%)."""
+
+    def __init__(self, stream=None):
+        self.stream = stream if stream is not None else sys.stderr
+        self.start = None
+        self.last_print = -1
+
+    def __call__(self, done: int, total: int, info: dict) -> None:
+        import time
+
+        now = time.perf_counter()
+        if self.start is None:
+            self.start = now
+        every = max(total // 50, 1)
+        if done % every and done != total:
+            return
+        rate = done / max(now - self.start, 1e-9)
+        eta = (total - done) / max(rate, 1e-9)
+        print(
+            f"step {info['step']:>6} ({done}/{total})  loss {info['loss']:.4f}  PSNR {info['psnr']:5.2f} dB  "
+            f"{info['num_gaussians']:,} Gaussians  {rate:.1f} steps/s  ETA {eta:.0f} s",
+            file=self.stream,
+            flush=True,
+        )
+
+
+def _background_arg(text: str):
+    from .training.evaluate import BACKGROUNDS
+
+    return text if text == "random" else BACKGROUNDS[text]
+
+
+def cmd_train(args) -> None:
+    from .datasets import load_dataset
+    from .splatting import GaussianModel
+    from .training import GaussianTrainer, TrainerConfig
+    from .training.evaluate import evaluate
+
+    with step(f"loading {args.data}"):
+        dataset = load_dataset(args.data, factor=args.factor)
+    print(f"{args.data}: {len(dataset.train)} training and {len(dataset.test)} test views")
+    out_dir = os.path.dirname(os.path.abspath(args.out))
+    config = TrainerConfig(
+        method=args.method, steps=args.steps, max_gaussians=args.max_gaussians, background=_background_arg(args.background),
+        seed=args.seed, checkpoint_every=args.checkpoint_every, checkpoint_dir=out_dir,
+    )
+    if args.resume:
+        trainer = GaussianTrainer.load_checkpoint(args.resume, config)
+        print(f"resumed at step {trainer.step_count} from {args.resume}")
+    else:
+        if dataset.points is None or len(dataset.points) < 2:
+            raise Mlx3dError(f"{args.data} has no initial points (COLMAP points3D or nerfstudio ply_file_path) to start from")
+        model = GaussianModel.from_points(dataset.points, dataset.point_colors, sh_degree=args.sh_degree)
+        trainer = GaussianTrainer(model, config, scene_extent=dataset.scene_extent())
+    remaining = max(args.steps - trainer.step_count, 0)
+    try:
+        trainer.fit(dataset, steps=remaining, progress=TrainProgress())
+    except KeyboardInterrupt:
+        trainer.model.save_ply(args.out)
+        trainer.save_checkpoint(os.path.join(out_dir, "checkpoint.npz"))
+        print(f"cancelled at step {trainer.step_count}: saved {args.out} and a checkpoint to resume from", file=sys.stderr)
+        raise
+    _save(trainer.model, args.out)
+    if args.eval and dataset.test:
+        background = (0.0, 0.0, 0.0) if args.background == "random" else _background_arg(args.background)
+        report = evaluate(trainer.model, dataset, "test", background, out_dir=os.path.splitext(args.out)[0] + "_eval")
+        print(f"held-out views: PSNR {report['psnr']:.2f} dB, SSIM {report['ssim']:.4f} ({len(report['views'])} views)")
+
+
+def cmd_eval(args) -> None:
+    from .datasets import load_dataset
+    from .splatting import GaussianModel
+    from .training.evaluate import evaluate
+
+    model = GaussianModel.load_ply(args.model, sh_degree=None)
+    dataset = load_dataset(args.data, factor=args.factor)
+    report = evaluate(model, dataset, args.split, _background_arg(args.background), out_dir=args.out, progress=ProgressLine("evaluating"))
+    for view in report["views"]:
+        print(f"{view['name']:<32} PSNR {view['psnr']:6.2f} dB  SSIM {view['ssim']:.4f}")
+    print(f"{'mean':<32} PSNR {report['psnr']:6.2f} dB  SSIM {report['ssim']:.4f}  ({report['seconds_per_view'] * 1000:.0f} ms per view)")
+    if args.out:
+        print(f"side-by-side renders and metrics.json in {args.out}")
+
+
 def cmd_demo(args) -> None:
     from .demo import run_demo
 
@@ -203,6 +288,28 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("inputs", nargs="+", metavar="IN.ply")
     p.add_argument("--sh-degree", type=int, default=None, choices=(0, 1, 2, 3), metavar="D")
     reading(p)
+
+    p = add("train", cmd_train, "Train Gaussians on a dataset (COLMAP, NeRF-synthetic or nerfstudio folder) and write a PLY.")
+    p.add_argument("data", metavar="DATA_DIR")
+    p.add_argument("--out", required=True, metavar="OUT.ply")
+    p.add_argument("--method", choices=("vanilla", "mcmc"), default="vanilla")
+    p.add_argument("--steps", type=int, default=30000)
+    p.add_argument("--max-gaussians", type=int, default=None, metavar="N", help="vanilla: stop growth at N; mcmc: grow to N")
+    p.add_argument("--sh-degree", type=int, choices=(0, 1, 2, 3), default=3)
+    p.add_argument("--background", choices=("black", "white", "random"), default="black", help="colour behind images with alpha")
+    p.add_argument("--factor", type=float, default=1, help="image downscale factor (uses images_N when present)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--checkpoint-every", type=int, default=0, metavar="N", help="write checkpoint.npz next to OUT every N steps")
+    p.add_argument("--resume", metavar="CHECKPOINT.npz", help="continue from a checkpoint")
+    p.add_argument("--eval", action="store_true", help="evaluate the held-out views at the end")
+
+    p = add("eval", cmd_eval, "PSNR and SSIM of a splat PLY on a dataset's held-out views; side-by-side renders.")
+    p.add_argument("model", metavar="MODEL.ply")
+    p.add_argument("--data", required=True, metavar="DATA_DIR")
+    p.add_argument("--split", default="test")
+    p.add_argument("--out", metavar="DIR", help="write renders/*.png (ground truth | render) and metrics.json here")
+    p.add_argument("--background", choices=("black", "white"), default="black")
+    p.add_argument("--factor", type=float, default=1)
 
     p = add("demo", cmd_demo, "Run the built-in end-to-end demo on a generated scene.")
     p.add_argument("--out", default="demo_out", metavar="DIR", help="output folder (default demo_out)")
