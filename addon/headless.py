@@ -16,7 +16,7 @@ import bpy
 
 from mlx3d.errors import Mlx3dError
 
-from . import capture, workflows
+from . import capture, train, workflows
 
 
 def _print(messages) -> None:
@@ -98,6 +98,30 @@ def cmd_capture(args) -> None:
     _print(messages)
 
 
+def cmd_train(args) -> None:
+    _reset_scene()
+    try:
+        _, messages = train.train_dataset(
+            args.data, steps=args.steps, method=args.method, out_ply=args.out, max_gaussians=args.max_gaussians,
+            sh_degree=args.sh_degree, background=args.background, seed=args.seed, progress=train.StatusPrinter(),
+        )
+    except KeyboardInterrupt:
+        print("blender_splat train: cancelled; nothing written", file=sys.stderr)
+        raise SystemExit(130) from None
+    _print(messages)
+    _save_blend(args)
+
+
+def _positive_int(text) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return value
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="blender_splat", description="Gaussian splat workflows in Blender, headless.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -164,6 +188,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--points", type=int, default=20000, help="initial points sampled on the surfaces (default 20000)")
     p.add_argument("--test-every", type=int, default=8, help="hold out every n-th frame (0: none; default 8)")
     p.add_argument("--seed", type=int, default=0)
+
+    text = "Train Gaussians on a dataset folder (COLMAP, NeRF-synthetic or nerfstudio) and write them as a 3DGS PLY."
+    p = sub.add_parser("train", help=text, description=text)
+    p.set_defaults(func=cmd_train)
+    p.add_argument("data", metavar="DATA", help="dataset folder (or its transforms*.json)")
+    p.add_argument("--out", required=True, metavar="OUT.ply")
+    p.add_argument("--method", choices=train.METHODS, default="vanilla", help="training method (default vanilla)")
+    p.add_argument("--steps", type=_positive_int, default=30000, help="training steps (default 30000)")
+    p.add_argument("--max-gaussians", type=_positive_int, default=None, metavar="M", help="cap on the number of Gaussians (default: none)")
+    p.add_argument("--sh-degree", type=int, choices=(0, 1, 2, 3), default=3, help="SH degree of the model (default 3)")
+    p.add_argument("--background", choices=train.BACKGROUNDS, default="black", help="background of renders and targets (default black)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--save-blend", metavar="OUT.blend", help="also save the scene with the trained splat object")
     return parser
 
 

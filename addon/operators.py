@@ -12,7 +12,7 @@ import bpy
 from bpy.props import BoolProperty, CollectionProperty, EnumProperty, FloatProperty, FloatVectorProperty, IntProperty, IntVectorProperty, StringProperty
 from bpy_extras.io_utils import ExportHelper, ImportHelper
 
-from . import capture, ellipsoids, workflows
+from . import capture, ellipsoids, train, workflows
 from .splat_object import is_splat_object
 
 SH_ITEMS = [("FILE", "As in file", "Keep every SH coefficient of the file")] + [(str(d), f"Degree {d}", f"Truncate or zero-pad SH to degree {d}") for d in range(4)]
@@ -403,6 +403,176 @@ class MLX3D_OT_capture_dataset(bpy.types.Operator):
             self._end(context, cancelled=True)
 
 
+# Events a running training lets through to the 3D viewport, so the view can be orbited, panned and zoomed meanwhile.
+_VIEW_EVENTS = {
+    "MOUSEMOVE", "INBETWEEN_MOUSEMOVE", "MIDDLEMOUSE", "WHEELUPMOUSE", "WHEELDOWNMOUSE", "WHEELINMOUSE", "WHEELOUTMOUSE",
+    "TRACKPADPAN", "TRACKPADZOOM", "MOUSEROTATE", "MOUSESMARTZOOM", "LEFT_SHIFT", "RIGHT_SHIFT", "LEFT_CTRL", "RIGHT_CTRL",
+    "LEFT_ALT", "RIGHT_ALT", "OSKEY", "NUMPAD_0", "NUMPAD_1", "NUMPAD_2", "NUMPAD_3", "NUMPAD_4", "NUMPAD_5", "NUMPAD_6",
+    "NUMPAD_7", "NUMPAD_8", "NUMPAD_9", "NUMPAD_PERIOD", "NUMPAD_PLUS", "NUMPAD_MINUS", "HOME",
+}
+
+
+class MLX3D_OT_train(bpy.types.Operator):
+    """Train 3D Gaussians on a dataset folder (COLMAP, NeRF-synthetic or nerfstudio, e.g. a captured one); the splat object updates while it trains. Esc stops and keeps the result so far"""
+
+    bl_idname = "mlx3d.train"
+    bl_label = "Train Splats"
+    bl_options = {"UNDO"}  # no redo panel: adjusting a setting there would retrain from scratch, blocking Blender
+
+    directory: StringProperty(name="Dataset", subtype="DIR_PATH", default="", options=BLEND_RELATIVE_PATH,
+                              description="Dataset folder (empty: the panel's dataset folder, where Capture Dataset writes)")
+    method: EnumProperty(name="Method", items=train.METHOD_ITEMS, default="vanilla")
+    steps: IntProperty(name="Steps", default=30000, min=1, description="Training steps (the schedules are laid out over them)")
+    max_gaussians: IntProperty(name="Max Gaussians", default=0, min=0, description="Cap on the number of Gaussians (0: no cap)")
+    sh_degree: IntProperty(name="SH degree", default=3, min=0, max=3, description="Spherical-harmonics degree of the view-dependent colour")
+    background: EnumProperty(name="Background", items=train.BACKGROUND_ITEMS, default="black")
+    update_every: IntProperty(name="Update every", default=100, min=1, description="Training steps between updates of the splat object")
+
+    TICK_SECONDS = 0.15  # training time per timer tick, so Blender stays responsive
+
+    _session = None
+    _timer = None
+    _area = None
+
+    @classmethod
+    def poll(cls, context):
+        return context.scene is not None
+
+    def _new_session(self, context):
+        folder = self.directory
+        if not folder:
+            settings = getattr(context.scene, "mlx3d_splats", None)
+            folder = settings.capture_dir if settings is not None else ""
+        if not folder:
+            raise train.TrainError("choose a dataset folder (or capture one with Capture Dataset)")
+        return train.TrainSession(
+            bpy.path.abspath(folder), method=self.method, steps=self.steps, max_gaussians=self.max_gaussians or None,
+            sh_degree=self.sh_degree, background=self.background, update_every=self.update_every,
+            collection=context.collection,
+        )
+
+    def _select(self, context, obj):
+        """Make ``obj`` the only selected and the active object."""
+        context.view_layer.update()  # a newly linked object has no base in the view layer before this
+        for other in context.view_layer.objects:
+            if other is not None and other.select_get():
+                other.select_set(False)
+        if obj.name in context.view_layer.objects:
+            obj.select_set(True)
+            context.view_layer.objects.active = obj
+
+    def _report_end(self, context, obj, messages, error):
+        if error is not None:
+            self.report({"ERROR"}, messages[0])
+            messages = messages[1:]
+        _report_all(self, messages)
+        self._select(context, obj)
+
+    def execute(self, context):
+        if context.mode != "OBJECT":
+            bpy.ops.object.mode_set(mode="OBJECT")
+        try:
+            session = self._new_session(context)
+        except (ValueError, OSError, RuntimeError) as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        error = None
+        with _Progress(context) as progress:
+            try:
+                session.run(progress=lambda done, total, status: progress(done, total))
+            except (ValueError, OSError, RuntimeError) as exc:
+                error = str(exc)
+        try:
+            obj, messages = session.finish(error=error)
+        except (ValueError, OSError, RuntimeError) as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        self._report_end(context, obj, messages, error)
+        return {"FINISHED"}
+
+    def invoke(self, context, event):
+        if context.window is None:  # no event loop (background): train to the end now
+            return self.execute(context)
+        if context.mode != "OBJECT":
+            bpy.ops.object.mode_set(mode="OBJECT")
+        try:
+            self._session = self._new_session(context)
+            self._select(context, self._session.update_object())  # the initial Gaussians, shown at once
+        except (ValueError, OSError, RuntimeError) as exc:
+            self._session = None
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        wm = context.window_manager
+        self._timer = wm.event_timer_add(0.01, window=context.window)
+        wm.modal_handler_add(self)
+        wm.progress_begin(0, self._session.steps)
+        self._area = context.area
+        self._header("Training: starting (Esc to stop and keep the result)")
+        return {"RUNNING_MODAL"}
+
+    def _header(self, text):
+        try:
+            if self._area is not None:
+                self._area.header_text_set(text)
+        except ReferenceError:
+            self._area = None
+
+    def _redraw(self, context):
+        for area in context.screen.areas if context.screen else ():
+            if area.type == "VIEW_3D":
+                area.tag_redraw()
+
+    def _stop(self, context):
+        """Remove the timer, progress and header text; returns the session, which the operator lets go of."""
+        wm = context.window_manager
+        if self._timer is not None:
+            wm.event_timer_remove(self._timer)
+            self._timer = None
+        wm.progress_end()
+        self._header(None)
+        session, self._session = self._session, None
+        return session
+
+    def _end(self, context, cancelled=False, error=None):
+        session = self._stop(context)
+        try:
+            obj, messages = session.finish(cancelled=cancelled, error=error)
+        except (ValueError, OSError, RuntimeError) as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        self._report_end(context, obj, messages, error)
+        self._redraw(context)
+        return {"FINISHED"}  # also after Esc or an error: the object kept in the scene gets its undo step
+
+    def modal(self, context, event):
+        if self._session is None:
+            return {"CANCELLED"}
+        if event.type == "ESC" and event.value == "PRESS":
+            return self._end(context, cancelled=True)
+        if event.type != "TIMER":
+            return {"PASS_THROUGH"} if event.type in _VIEW_EVENTS or event.type.startswith("NDOF") else {"RUNNING_MODAL"}
+        session = self._session
+        updated = session.object_step
+        try:
+            session.step(session.steps, max_seconds=self.TICK_SECONDS)
+        except (ValueError, OSError, RuntimeError) as exc:
+            return self._end(context, error=str(exc))
+        status = session.status()
+        context.window_manager.progress_update(status["step"])
+        self._header(f"Training: {train.format_status(status)}  (Esc to stop and keep the result)")
+        if session.object_step != updated:
+            self._redraw(context)
+        if session.done:
+            return self._end(context)
+        return {"RUNNING_MODAL"}
+
+    def cancel(self, context):
+        # Blender ends the operator (a file is loaded, the window closes): stop without touching the scene,
+        # whose object holds the last update.
+        if self._session is not None:
+            self._stop(context)
+
+
 class MLX3D_FH_gaussian_splat_ply(bpy.types.FileHandler):
     """Drag and drop .ply files onto the 3D viewport to import them as splats"""
 
@@ -435,5 +605,6 @@ CLASSES = (
     MLX3D_OT_show_ellipsoids,
     MLX3D_OT_render,
     MLX3D_OT_capture_dataset,
+    MLX3D_OT_train,
     MLX3D_FH_gaussian_splat_ply,
 )

@@ -5,7 +5,7 @@ from __future__ import annotations
 import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty
 
-from . import ellipsoids, operators, workflows
+from . import ellipsoids, operators, train, workflows
 from .splat_object import is_splat_object
 
 
@@ -33,6 +33,12 @@ class MLX3D_PG_settings(bpy.types.PropertyGroup):
     capture_points: IntProperty(name="Points", default=20000, min=1, description="Initial points sampled on the surfaces")
     capture_scene_cameras: BoolProperty(name="Scene cameras", default=False, description="Render from the scene's cameras instead of an orbit")
     capture_selected_only: BoolProperty(name="Selected only", default=False, description="Capture the selected meshes (else every visible mesh)")
+    train_method: EnumProperty(name="Method", items=train.METHOD_ITEMS, default="vanilla")
+    train_steps: IntProperty(name="Steps", default=30000, min=1, description="Training steps")
+    train_max_gaussians: IntProperty(name="Max Gaussians", default=0, min=0, description="Cap on the number of Gaussians (0: no cap)")
+    train_sh_degree: IntProperty(name="SH degree", default=3, min=0, max=3, description="Spherical-harmonics degree of the view-dependent colour")
+    train_background: EnumProperty(name="Background", items=train.BACKGROUND_ITEMS, default="black")
+    train_update_every: IntProperty(name="Update every", default=100, min=1, description="Training steps between updates of the splat object")
 
 
 _info_cache: dict = {}
@@ -137,4 +143,31 @@ class VIEW3D_PT_mlx3d_splats(bpy.types.Panel):
         op.num_points, op.selected_only = settings.capture_points, settings.capture_selected_only
 
 
-CLASSES = (MLX3D_PG_settings, VIEW3D_PT_mlx3d_splats)
+class VIEW3D_PT_mlx3d_train(bpy.types.Panel):
+    """Train Gaussians on a dataset folder (by default the capture folder)"""
+
+    bl_label = "Train"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "Splats"
+    bl_parent_id = "VIEW3D_PT_mlx3d_splats"
+
+    def draw(self, context):
+        settings = context.scene.mlx3d_splats
+        col = self.layout.column(align=True)
+        col.prop(settings, "capture_dir", text="Dataset")
+        col.prop(settings, "train_method")
+        col.prop(settings, "train_steps")
+        col.prop(settings, "train_max_gaussians")
+        col.prop(settings, "train_sh_degree")
+        col.prop(settings, "train_background")
+        col.prop(settings, "train_update_every")
+        row = col.row()
+        row.enabled = bool(settings.capture_dir)
+        op = row.operator(operators.MLX3D_OT_train.bl_idname, icon="PLAY")
+        op.directory, op.method, op.steps = settings.capture_dir, settings.train_method, settings.train_steps
+        op.max_gaussians, op.sh_degree, op.background = settings.train_max_gaussians, settings.train_sh_degree, settings.train_background
+        op.update_every = settings.train_update_every
+
+
+CLASSES = (MLX3D_PG_settings, VIEW3D_PT_mlx3d_splats, VIEW3D_PT_mlx3d_train)

@@ -10,6 +10,7 @@ tested and inspected (``events_at``).
 
 from __future__ import annotations
 
+import json
 import math
 import os
 from dataclasses import asdict, dataclass, field
@@ -102,13 +103,14 @@ class GaussianTrainer:
     """Optimises a ``GaussianModel`` in place.
 
     scene_extent: radius of the camera centres (the dataset's ``scene_extent()``);
-    it scales the means learning rate and the densification thresholds.
+    it scales the means learning rate and the densification thresholds. A
+    non-positive extent (e.g. a single camera) is taken as 1.
     """
 
-    def __init__(self, model: GaussianModel, config: TrainerConfig | None = None, scene_extent: float = 1.0, num_images: int = 0):
+    def __init__(self, model: GaussianModel, config: TrainerConfig | None = None, scene_extent: float = 1.0):
         self.model = model
         self.config = config or TrainerConfig()
-        self.scene_extent = float(scene_extent)
+        self.scene_extent = float(scene_extent) if scene_extent > 0 else 1.0
         self.step_count = 0
         self.active_sh_degree = 0
         self.rng = np.random.default_rng(self.config.seed)
@@ -139,7 +141,8 @@ class GaussianTrainer:
         self.grad_count = np.zeros(n)
         self.max_radii = np.zeros(n)
 
-    def _background(self):
+    def background_colour(self) -> tuple:
+        """The (r,g,b) background for the next step ('random' draws a new colour)."""
         bg = self.config.background
         if bg == "black":
             return (0.0, 0.0, 0.0)
@@ -157,7 +160,7 @@ class GaussianTrainer:
         which must match how the target was composited). Returns logging info.
         """
         c = self.config
-        bg = self._background() if background is None else tuple(background)
+        bg = self.background_colour() if background is None else tuple(background)
         target = mx.array(target, dtype=mx.float32)
         mask = None if weight is None else mx.array(weight, dtype=mx.float32)
         params = self.model.params
@@ -194,9 +197,10 @@ class GaussianTrainer:
         self.grad_count[visible] += 1
         self.max_radii = np.maximum(self.max_radii, np.array(out["radii"]))
 
-        info = {"step": self.step_count, "loss": loss_value, "psnr": float(psnr(mx.clip(out["image"], 0, 1), target, mask)), "num_gaussians": n}
+        info = {"step": self.step_count, "loss": loss_value, "psnr": float(psnr(mx.clip(out["image"], 0, 1), target, mask))}
         for event in events_at(c, self.step_count):
             info[event] = self._apply_event(event)
+        info["num_gaussians"] = len(self.model)  # after this step's density control
         return info
 
     def _apply_event(self, event: str):
@@ -251,7 +255,7 @@ class GaussianTrainer:
             if should_stop is not None and should_stop():
                 break
             index = train[int(self.rng.integers(len(train)))]
-            colour = self._background()  # the target is composited on the colour the render uses
+            colour = self.background_colour()  # the target is composited on the colour the render uses
             image, weight = dataset.load_image(index, background=colour, rng=self.rng)
             info = self.step(dataset.frames[index].camera, image, weight, background=colour)
             history.append(info)
@@ -263,7 +267,7 @@ class GaussianTrainer:
 
     # ------------------------------------------------------------------ checkpoints
     def save_checkpoint(self, path) -> None:
-        """Parameters, optimizer state, step and schedule state in one .npz (written atomically)."""
+        """Parameters, optimizer state, step, schedule and random state in one .npz (written atomically)."""
         from ..io.atomic import atomic_write
 
         state = {f"param/{k}": np.array(v) for k, v in self.model.params.items()}
@@ -271,6 +275,7 @@ class GaussianTrainer:
         state.update(
             step=np.array(self.step_count), active_sh_degree=np.array(self.active_sh_degree), opacity_resets=np.array(self.opacity_resets),
             grad_accum=self.grad_accum, grad_count=self.grad_count, max_radii=self.max_radii, scene_extent=np.array(self.scene_extent),
+            rng_state=np.array(json.dumps(self.rng.bit_generator.state)),
         )
         with atomic_write(path) as f:
             np.savez(f, **state)
@@ -287,6 +292,7 @@ class GaussianTrainer:
         trainer.active_sh_degree = int(state["active_sh_degree"])
         trainer.opacity_resets = int(state["opacity_resets"])
         trainer.grad_accum, trainer.grad_count, trainer.max_radii = state["grad_accum"], state["grad_count"], state["max_radii"]
+        trainer.rng.bit_generator.state = json.loads(str(state["rng_state"]))
         return trainer
 
     def config_dict(self) -> dict:
