@@ -196,7 +196,7 @@ def cmd_train(args) -> None:
     out_dir = os.path.dirname(os.path.abspath(args.out))
     config = TrainerConfig(
         method=args.method, steps=args.steps, max_gaussians=args.max_gaussians, background=_background_arg(args.background),
-        seed=args.seed, checkpoint_every=args.checkpoint_every, checkpoint_dir=out_dir,
+        seed=args.seed, checkpoint_every=args.checkpoint_every, checkpoint_dir=out_dir, bilateral_grid=args.bilateral_grid,
     )
     if args.resume:
         trainer = GaussianTrainer.load_checkpoint(args.resume, config)
@@ -302,6 +302,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--checkpoint-every", type=int, default=0, metavar="N", help="write checkpoint.npz next to OUT every N steps")
     p.add_argument("--resume", metavar="CHECKPOINT.npz", help="continue from a checkpoint")
     p.add_argument("--eval", action="store_true", help="evaluate the held-out views at the end")
+    p.add_argument("--bilateral-grid", action="store_true", help="per-image colour grid for exposure/white-balance differences")
 
     p = add("eval", cmd_eval, "PSNR and SSIM of a splat PLY on a dataset's held-out views; side-by-side renders.")
     p.add_argument("model", metavar="MODEL.ply")

@@ -297,3 +297,24 @@ def test_mcmc_schedule_and_training():
     assert last < 0.6 * first
     assert [i["step"] for i in infos if "grow" in i][:2] == [20, 40]
     assert len(trainer.model) <= 80 and len(trainer.model) > 60
+
+
+
+def test_bilateral_grid_absorbs_exposure_differences(tmp_path):
+    model, cams, targets = small_problem(7)
+    gains = np.array([0.8, 1.2, 0.9, 1.1, 0.85, 1.15])
+    varied = [np.clip(t * g, 0, 1) for t, g in zip(targets, gains)]
+    losses = {}
+    for use_grid in (False, True):
+        config = TrainerConfig(steps=300, densify_from=10_000, bilateral_grid=use_grid, bilateral_grid_shape=(4, 4, 4), seed=2)
+        trainer = GaussianTrainer(model.copy(), config, scene_extent=3.0, num_images=6)
+        for i in range(300):
+            trainer.step(cams[i % 6], varied[i % 6], image_index=i % 6)
+        losses[use_grid] = np.mean([trainer.step(c, t, image_index=j)["loss"] for j, (c, t) in enumerate(zip(cams, varied))])
+        if use_grid:
+            trainer.save_checkpoint(tmp_path / "ck.npz")
+            back = GaussianTrainer.load_checkpoint(tmp_path / "ck.npz", config)
+            np.testing.assert_array_equal(np.array(back.bilateral.params), np.array(trainer.bilateral.params))
+    assert losses[True] < 0.85 * losses[False], losses
+    with pytest.raises(ValueError, match="image_index"):
+        GaussianTrainer(model.copy(), TrainerConfig(bilateral_grid=True), num_images=6).step(cams[0], varied[0])

@@ -67,6 +67,11 @@ class TrainerConfig:
     mcmc_noise_scale: float = 5e5  # SGLD noise, times the means learning rate
     mcmc_opacity_reg: float = 0.01
     mcmc_scale_reg: float = 0.01
+    # per-image affine colour grid absorbing exposure/white-balance differences (off unless enabled)
+    bilateral_grid: bool = False
+    bilateral_grid_shape: tuple = (16, 16, 8)
+    bilateral_grid_lr: float = 2e-3
+    lambda_bilateral_tv: float = 10.0
     seed: int = 0
     low_memory: bool = False  # clear MLX's buffer cache after densification
     cache_limit_gb: float | None = None
@@ -107,10 +112,14 @@ class GaussianTrainer:
     non-positive extent (e.g. a single camera) is taken as 1.
     """
 
-    def __init__(self, model: GaussianModel, config: TrainerConfig | None = None, scene_extent: float = 1.0):
+    def __init__(self, model: GaussianModel, config: TrainerConfig | None = None, scene_extent: float = 1.0, num_images: int | None = None):
         self.model = model
         self.config = config or TrainerConfig()
         self.scene_extent = float(scene_extent) if scene_extent > 0 else 1.0
+        self.bilateral = None  # the BilateralGrid when enabled (needs num_images; fit() knows it)
+        self.grid_optimizer = None
+        if self.config.bilateral_grid and num_images:
+            self._make_grid(num_images)
         self.step_count = 0
         self.active_sh_degree = 0
         self.rng = np.random.default_rng(self.config.seed)
@@ -119,6 +128,12 @@ class GaussianTrainer:
         self.opacity_resets = 0
         if self.config.cache_limit_gb is not None:
             mx.set_cache_limit(int(self.config.cache_limit_gb * 2**30))
+
+    def _make_grid(self, num_images: int) -> None:
+        from .bilateral_grid import BilateralGrid
+
+        self.bilateral = BilateralGrid(num_images, self.config.bilateral_grid_shape)
+        self.grid_optimizer = Adam({"grid": self.config.bilateral_grid_lr})
 
     # ------------------------------------------------------------------ schedules
     def learning_rates(self) -> dict:
@@ -153,13 +168,17 @@ class GaussianTrainer:
         return tuple(bg)
 
     # ------------------------------------------------------------------ one step
-    def step(self, camera, target, weight=None, background=None) -> dict:
+    def step(self, camera, target, weight=None, background=None, image_index: int | None = None) -> dict:
         """One optimisation step on one view. target (H,W,3) in [0,1]; weight (H,W) or None.
 
         background: colour composited behind the render (defaults to the config's,
-        which must match how the target was composited). Returns logging info.
+        which must match how the target was composited); image_index: which
+        training image this is (needed by the bilateral grid). Returns logging info.
         """
         c = self.config
+        use_grid = self.bilateral is not None
+        if c.bilateral_grid and (not use_grid or image_index is None):
+            raise ValueError("bilateral_grid needs the trainer's num_images and each step's image_index")
         bg = self.background_colour() if background is None else tuple(background)
         target = mx.array(target, dtype=mx.float32)
         mask = None if weight is None else mx.array(weight, dtype=mx.float32)
@@ -167,25 +186,34 @@ class GaussianTrainer:
         n = len(self.model)
         degree = min(self.active_sh_degree, self.model.sh_degree)
 
-        def loss_fn(p, offset):
+        def loss_fn(p, offset, grid):
             sh = mx.concatenate([p["sh_dc"], p["sh_rest"]], axis=1)
             out = render_gaussians(
                 camera, p["means"], p["quats"], mx.exp(p["scales"]), mx.sigmoid(p["opacities"]), sh=sh, sh_degree=degree,
                 background=bg, antialias=c.antialias, projection=c.projection, means2d_offset=offset,
             )
-            loss = photometric_loss(out["image"], target, c.lambda_dssim, mask)
+            image = out["image"]
+            if use_grid:
+                image = self.bilateral.apply(image, image_index, grid, compiled=False)
+                out = dict(out, image=image)
+            loss = photometric_loss(image, target, c.lambda_dssim, mask)
+            if use_grid:
+                loss = loss + c.lambda_bilateral_tv * self.bilateral.tv_loss(grid)
             if c.method == "mcmc":
                 loss = loss + c.mcmc_opacity_reg * mx.mean(mx.sigmoid(p["opacities"])) + c.mcmc_scale_reg * mx.mean(mx.exp(p["scales"]))
             return loss, out
 
-        (loss, out), (grads, grad2d) = mx.value_and_grad(loss_fn, argnums=(0, 1))(params, mx.zeros((n, 2)))
-        mx.eval(loss, grads, grad2d)
+        grid_in = self.bilateral.params if use_grid else mx.zeros((1,))
+        (loss, out), (grads, grad2d, grad_grid) = mx.value_and_grad(loss_fn, argnums=(0, 1, 2))(params, mx.zeros((n, 2)), grid_in)
+        mx.eval(loss, grads, grad2d, grad_grid)
         loss_value = float(loss)
         if not math.isfinite(loss_value) or not all(bool(mx.all(mx.isfinite(g))) for g in grads.values()):
             raise TrainingError(f"step {self.step_count + 1}: the loss or a gradient is not finite (loss {loss_value}); parameters left at the last good step")
 
         self.optimizer.lrs = self.learning_rates()
         self.model.params = self.optimizer.update(params, grads)
+        if use_grid:
+            self.bilateral.params = self.grid_optimizer.update({"grid": grid_in}, {"grid": grad_grid})["grid"]
         if c.method == "mcmc":
             self.model.params["means"] = sgld_noise(self.model.params, self.optimizer.lrs["means"], c.mcmc_noise_scale, self.rng)
         self.step_count += 1
@@ -250,6 +278,8 @@ class GaussianTrainer:
         train = list(dataset.train)
         if not train:
             raise ValueError("the dataset has no training views")
+        if self.config.bilateral_grid and self.bilateral is None:
+            self._make_grid(len(dataset.frames))
         history = []
         for i in range(steps):
             if should_stop is not None and should_stop():
@@ -257,7 +287,7 @@ class GaussianTrainer:
             index = train[int(self.rng.integers(len(train)))]
             colour = self.background_colour()  # the target is composited on the colour the render uses
             image, weight = dataset.load_image(index, background=colour, rng=self.rng)
-            info = self.step(dataset.frames[index].camera, image, weight, background=colour)
+            info = self.step(dataset.frames[index].camera, image, weight, background=colour, image_index=index)
             history.append(info)
             if self.config.checkpoint_every and self.config.checkpoint_dir and self.step_count % self.config.checkpoint_every == 0:
                 self.save_checkpoint(os.path.join(self.config.checkpoint_dir, "checkpoint.npz"))
@@ -277,6 +307,9 @@ class GaussianTrainer:
             grad_accum=self.grad_accum, grad_count=self.grad_count, max_radii=self.max_radii, scene_extent=np.array(self.scene_extent),
             rng_state=np.array(json.dumps(self.rng.bit_generator.state)),
         )
+        if self.bilateral is not None:
+            state["bilateral_grid"] = np.array(self.bilateral.params)
+            state.update({f"grid_adam/{k}": v for k, v in self.grid_optimizer.state_dict().items()})
         with atomic_write(path) as f:
             np.savez(f, **state)
 
@@ -293,6 +326,10 @@ class GaussianTrainer:
         trainer.opacity_resets = int(state["opacity_resets"])
         trainer.grad_accum, trainer.grad_count, trainer.max_radii = state["grad_accum"], state["grad_count"], state["max_radii"]
         trainer.rng.bit_generator.state = json.loads(str(state["rng_state"]))
+        if "bilateral_grid" in state:
+            trainer._make_grid(state["bilateral_grid"].shape[0])
+            trainer.bilateral.params = mx.array(state["bilateral_grid"])
+            trainer.grid_optimizer.load_state_dict({k[10:]: v for k, v in state.items() if k.startswith("grid_adam/")})
         return trainer
 
     def config_dict(self) -> dict:
