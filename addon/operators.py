@@ -276,7 +276,43 @@ class MLX3D_OT_render(bpy.types.Operator):
 BLEND_RELATIVE_PATH = {"PATH_SUPPORTS_BLEND_RELATIVE"} if bpy.app.version >= (5, 0, 0) else set()
 
 
-class MLX3D_OT_capture_dataset(bpy.types.Operator):
+class _ModalWork:
+    """Plumbing of operators that do one unit of work per timer tick: the timer,
+    status-bar progress, header text, and handing the session back at the end."""
+
+    _session = None
+    _timer = None
+    _area = None
+
+    def _start_modal(self, context, total: int, text: str):
+        wm = context.window_manager
+        self._timer = wm.event_timer_add(0.01, window=context.window)
+        wm.modal_handler_add(self)
+        wm.progress_begin(0, total)
+        self._area = context.area
+        self._header(text)
+        return {"RUNNING_MODAL"}
+
+    def _header(self, text):
+        try:
+            if self._area is not None:
+                self._area.header_text_set(text)
+        except ReferenceError:
+            self._area = None
+
+    def _stop(self, context):
+        """Remove the timer, progress and header text; returns the session, which the operator lets go of."""
+        wm = context.window_manager
+        if self._timer is not None:
+            wm.event_timer_remove(self._timer)
+            self._timer = None
+        wm.progress_end()
+        self._header(None)
+        session, self._session = self._session, None
+        return session
+
+
+class MLX3D_OT_capture_dataset(_ModalWork, bpy.types.Operator):
     """Render the scene's meshes from an orbit of cameras (or the scene cameras) with Cycles into a training dataset: images, transforms.json, a COLMAP model and initial points. Esc cancels and keeps the views rendered so far"""
 
     bl_idname = "mlx3d.capture_dataset"
@@ -294,10 +330,6 @@ class MLX3D_OT_capture_dataset(bpy.types.Operator):
     num_points: IntProperty(name="Points", default=20000, min=1, description="Initial points sampled on the surfaces")
     test_every: IntProperty(name="Test every", default=8, min=0, description="Hold out every n-th frame for testing (0: none)")
     seed: IntProperty(name="Seed", default=0, min=0, description="Seed of the point sampling")
-
-    _session = None
-    _timer = None
-    _area = None
 
     @classmethod
     def poll(cls, context):
@@ -345,29 +377,10 @@ class MLX3D_OT_capture_dataset(bpy.types.Operator):
                 self._session = None
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
-        wm = context.window_manager
-        self._timer = wm.event_timer_add(0.01, window=context.window)
-        wm.modal_handler_add(self)
-        wm.progress_begin(0, self._session.total)
-        self._area = context.area
-        self._header(f"Capturing dataset: view 0 of {self._session.total} (Esc to cancel)")
-        return {"RUNNING_MODAL"}
-
-    def _header(self, text):
-        try:
-            if self._area is not None:
-                self._area.header_text_set(text)
-        except ReferenceError:
-            self._area = None
+        return self._start_modal(context, self._session.total, f"Capturing dataset: view 0 of {self._session.total} (Esc to cancel)")
 
     def _end(self, context, cancelled=False, error=None):
-        wm = context.window_manager
-        if self._timer is not None:
-            wm.event_timer_remove(self._timer)
-            self._timer = None
-        wm.progress_end()
-        self._header(None)
-        session, self._session = self._session, None
+        session = self._stop(context)
         messages = []
         try:
             session.close()
@@ -412,7 +425,7 @@ _VIEW_EVENTS = {
 }
 
 
-class MLX3D_OT_train(bpy.types.Operator):
+class MLX3D_OT_train(_ModalWork, bpy.types.Operator):
     """Train 3D Gaussians on a dataset folder (COLMAP, NeRF-synthetic or nerfstudio, e.g. a captured one); the splat object updates while it trains. Esc stops and keeps the result so far"""
 
     bl_idname = "mlx3d.train"
@@ -429,10 +442,6 @@ class MLX3D_OT_train(bpy.types.Operator):
     update_every: IntProperty(name="Update every", default=100, min=1, description="Training steps between updates of the splat object")
 
     TICK_SECONDS = 0.15  # training time per timer tick, so Blender stays responsive
-
-    _session = None
-    _timer = None
-    _area = None
 
     @classmethod
     def poll(cls, context):
@@ -502,36 +511,12 @@ class MLX3D_OT_train(bpy.types.Operator):
             self._session = None
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
-        wm = context.window_manager
-        self._timer = wm.event_timer_add(0.01, window=context.window)
-        wm.modal_handler_add(self)
-        wm.progress_begin(0, self._session.steps)
-        self._area = context.area
-        self._header("Training: starting (Esc to stop and keep the result)")
-        return {"RUNNING_MODAL"}
-
-    def _header(self, text):
-        try:
-            if self._area is not None:
-                self._area.header_text_set(text)
-        except ReferenceError:
-            self._area = None
+        return self._start_modal(context, self._session.steps, "Training: starting (Esc to stop and keep the result)")
 
     def _redraw(self, context):
         for area in context.screen.areas if context.screen else ():
             if area.type == "VIEW_3D":
                 area.tag_redraw()
-
-    def _stop(self, context):
-        """Remove the timer, progress and header text; returns the session, which the operator lets go of."""
-        wm = context.window_manager
-        if self._timer is not None:
-            wm.event_timer_remove(self._timer)
-            self._timer = None
-        wm.progress_end()
-        self._header(None)
-        session, self._session = self._session, None
-        return session
 
     def _end(self, context, cancelled=False, error=None):
         session = self._stop(context)

@@ -21,6 +21,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from panel_layout import RecordingLayout
 
 bpy = pytest.importorskip("bpy")
 
@@ -372,7 +373,7 @@ class _OperatorState:
 
     def __init__(self, cls, session):
         self._session, self._timer, self._area, self.reports = session, None, None, []
-        for name in ("_end", "_header"):
+        for name in ("_end", "_header", "_stop"):
             setattr(self, name, types.MethodType(getattr(cls, name), self))
 
     def report(self, level, message):
@@ -563,36 +564,12 @@ def test_headless_capture(extension, extension_env, clean_scene, tmp_path):
     assert bad.returncode == 1 and "cannot write the dataset to folder" in bad.stderr
 
 
-class _Layout:
-    """Records what a panel draws (bpy has no window to draw into here)."""
-
-    def __init__(self, log):
-        self.log, self.enabled = log, True
-
-    def row(self, **kw):
-        return _Layout(self.log)
-
-    column = box = row
-
-    def label(self, text="", **kw):
-        self.log.append(("label", text))
-
-    def prop(self, data, name, **kw):
-        getattr(data, name)
-        self.log.append(("prop", name))
-
-    def operator(self, idname, **kw):
-        props = SimpleNamespace()
-        self.log.append(("operator", idname, props))
-        return props
-
-
 def test_panel_capture_section_passes_its_settings(extension, clean_scene):
     settings = clean_scene.mlx3d_splats
     settings.capture_dir, settings.capture_views, settings.capture_samples = "//dataset", 12, 5
     settings.capture_resolution = (64, 48)
     log = []
-    extension.addon.panel.VIEW3D_PT_mlx3d_splats.draw(SimpleNamespace(layout=_Layout(log)), SimpleNamespace(scene=clean_scene, active_object=None))
+    extension.addon.panel.VIEW3D_PT_mlx3d_splats.draw(SimpleNamespace(layout=RecordingLayout(log)), SimpleNamespace(scene=clean_scene, active_object=None))
     start = log.index(("label", "Capture dataset"))
     props = [entry[1] for entry in log[start:] if entry[0] == "prop"]
     assert {"capture_dir", "capture_views", "capture_radius", "capture_resolution", "capture_samples", "capture_points"} <= set(props)

@@ -18,6 +18,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from panel_layout import RecordingLayout
 
 from mlx3d.io import read_splat_ply
 
@@ -296,30 +297,6 @@ def test_headless_train(extension, extension_env, dataset, tmp_path):
     assert not (tmp_path / "x.ply").exists()
 
 
-class _Layout:
-    """Records what a panel draws (bpy has no window to draw into here)."""
-
-    def __init__(self, log):
-        self.log, self.enabled = log, True
-
-    def row(self, **kw):
-        return _Layout(self.log)
-
-    column = box = row
-
-    def label(self, text="", **kw):
-        self.log.append(("label", text))
-
-    def prop(self, data, name, **kw):
-        getattr(data, name)
-        self.log.append(("prop", name))
-
-    def operator(self, idname, **kw):
-        props = SimpleNamespace()
-        self.log.append(("operator", idname, props))
-        return props
-
-
 def test_panel_train_section_passes_its_settings(extension, clean_scene):
     settings = clean_scene.mlx3d_splats
     settings.capture_dir, settings.train_steps, settings.train_max_gaussians = "//dataset", 7000, 50_000
@@ -327,7 +304,7 @@ def test_panel_train_section_passes_its_settings(extension, clean_scene):
     panel = extension.addon.panel.VIEW3D_PT_mlx3d_train
     assert panel.bl_parent_id == "VIEW3D_PT_mlx3d_splats" and panel.bl_label == "Train"  # a section below the main panel
     log = []
-    panel.draw(SimpleNamespace(layout=_Layout(log)), SimpleNamespace(scene=clean_scene, active_object=None))
+    panel.draw(SimpleNamespace(layout=RecordingLayout(log)), SimpleNamespace(scene=clean_scene, active_object=None))
     props = [entry[1] for entry in log if entry[0] == "prop"]
     assert props == ["capture_dir", "train_method", "train_steps", "train_max_gaussians", "train_sh_degree", "train_background", "train_update_every"]
     (_, idname, op), = [entry for entry in log if entry[0] == "operator"]
