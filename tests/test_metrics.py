@@ -6,7 +6,6 @@ import mlx.core as mx
 import numpy as np
 import pytest
 
-from mlx3d.training import metrics as M
 from mlx3d.training.metrics import (
     PSNR_MAX_DB,
     gaussian_window,
