@@ -16,7 +16,7 @@ import bpy
 
 from mlx3d.errors import Mlx3dError
 
-from . import capture, train, workflows
+from . import capture, demo, train, workflows
 
 
 def _print(messages) -> None:
@@ -112,6 +112,14 @@ def cmd_train(args) -> None:
     _save_blend(args)
 
 
+def cmd_demo(args) -> None:
+    try:
+        demo.run_demo(args.out, quick=args.quick)
+    except KeyboardInterrupt:
+        print("blender_splat demo: cancelled", file=sys.stderr)
+        raise SystemExit(130) from None
+
+
 def _positive_int(text) -> int:
     try:
         value = int(text)
@@ -201,6 +209,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--background", choices=train.BACKGROUNDS, default="black", help="background of renders and targets (default black)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--save-blend", metavar="OUT.blend", help="also save the scene with the trained splat object")
+
+    text = ("Build a textured scene, capture it, train splats on it, evaluate them on held-out views, and export, "
+            "re-import and save the result (the main job end to end; replaces the open Blender file).")
+    p = sub.add_parser("demo", help=text, description=text)
+    p.set_defaults(func=cmd_demo)
+    p.add_argument("--out", default="demo_out", metavar="DIR", help="output folder (default demo_out)")
+    p.add_argument("--quick", action="store_true", help="toy sizes (8 views at 32x32, 100 steps), for tests")
     return parser
 
 
