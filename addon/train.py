@@ -40,8 +40,11 @@ from mlx3d.training.metrics import psnr
 
 from .splat_object import create_splat_object, replace_splats
 
-METHODS = ("vanilla",)
-METHOD_ITEMS = [("vanilla", "Vanilla 3DGS", "3D Gaussian Splatting with adaptive density control (clone, split, prune)")]
+METHODS = ("vanilla", "mcmc")
+METHOD_ITEMS = [
+    ("vanilla", "Vanilla 3DGS", "3D Gaussian Splatting with adaptive density control (clone, split, prune)"),
+    ("mcmc", "3DGS-MCMC", "Relocation of dead Gaussians, growth to the cap and SGLD noise (set Max Gaussians)"),
+]
 BACKGROUNDS = ("black", "white", "random")
 BACKGROUND_ITEMS = [
     ("black", "Black", "Render and composite transparent target pixels on black"),

@@ -311,3 +311,12 @@ def test_panel_train_section_passes_its_settings(extension, clean_scene):
     assert idname == "mlx3d.train"
     assert (op.directory, op.method, op.steps, op.max_gaussians, op.sh_degree, op.background, op.update_every) == (
         "//dataset", "vanilla", 7000, 50_000, 2, "random", 250)
+
+
+def test_mcmc_is_offered_and_trains(extension, clean_scene, dataset):
+    train = extension.addon.train
+    assert "mcmc" in train.METHODS and "mcmc" in [item[0] for item in train.METHOD_ITEMS]
+    session = train.TrainSession(dataset, steps=30, method="mcmc", max_gaussians=2500, densify_from=5, densify_every=10)
+    session.run()
+    obj, _ = session.finish()
+    assert 2000 < len(obj.data.points) <= 2500  # grew towards the cap
