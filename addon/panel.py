@@ -52,6 +52,18 @@ def _cached_info(obj) -> dict:
     return _info_cache[key]
 
 
+def _section(layout, title: str, settings, operator, icon: str, fields: dict):
+    """A titled column showing ``fields`` (operator property -> setting) and a button passing them on."""
+    col = layout.column(align=True)
+    col.label(text=title)
+    for setting in fields.values():
+        col.prop(settings, setting)
+    op = col.operator(operator.bl_idname, icon=icon)
+    for prop, setting in fields.items():
+        setattr(op, prop, getattr(settings, setting))
+    return col
+
+
 class VIEW3D_PT_mlx3d_splats(bpy.types.Panel):
     bl_label = "Gaussian Splats"
     bl_space_type = "VIEW_3D"
@@ -107,21 +119,10 @@ class VIEW3D_PT_mlx3d_splats(bpy.types.Panel):
         op.method, op.k, op.std_ratio = settings.floater_method, settings.floater_k, settings.floater_std
         op.radius, op.min_neighbours = settings.floater_radius, settings.floater_min_neighbours
 
-        col = layout.column(align=True)
-        col.label(text="Compact")
-        col.prop(settings, "compact_max")
-        col.prop(settings, "compact_min_opacity")
-        col.prop(settings, "compact_sh")
-        op = col.operator(operators.MLX3D_OT_compact.bl_idname, icon="MOD_DECIM")
-        op.max_gaussians, op.min_opacity, op.sh_degree = settings.compact_max, settings.compact_min_opacity, settings.compact_sh
-
-        col = layout.column(align=True)
-        col.label(text="Render (scene camera)")
-        col.prop(settings, "render_antialias")
-        col.prop(settings, "render_background")
-        col.prop(settings, "render_path")
-        op = col.operator(operators.MLX3D_OT_render.bl_idname, icon="RENDER_STILL")
-        op.antialias, op.background, op.filepath = settings.render_antialias, settings.render_background, settings.render_path
+        _section(layout, "Compact", settings, operators.MLX3D_OT_compact, "MOD_DECIM",
+                 {"max_gaussians": "compact_max", "min_opacity": "compact_min_opacity", "sh_degree": "compact_sh"})
+        _section(layout, "Render (scene camera)", settings, operators.MLX3D_OT_render, "RENDER_STILL",
+                 {"antialias": "render_antialias", "background": "render_background", "filepath": "render_path"})
 
         col = layout.column(align=True)
         col.label(text="Capture dataset")

@@ -497,3 +497,21 @@ def test_headless_render(extension, clean_scene, tmp_path):
     code = headless.main(["render", "--blend", str(tmp_path / "scene.blend"), "--out", str(tmp_path / "out.png"), "--background", "1", "1", "1"])
     assert code == 0 and (tmp_path / "out.png").exists()
     assert tuple(bpy.data.images.load(str(tmp_path / "out.png")).size) == (32, 24)
+
+
+def test_panel_compact_and_render_sections_pass_their_settings(extension, clean_scene):
+    from types import SimpleNamespace
+
+    from panel_layout import RecordingLayout
+
+    settings = clean_scene.mlx3d_splats
+    settings.compact_max, settings.compact_min_opacity, settings.compact_sh = 1234, 0.25, "1"
+    settings.render_antialias, settings.render_background, settings.render_path = True, (0.1, 0.2, 0.3), "//out.png"
+    log = []
+    extension.addon.panel.VIEW3D_PT_mlx3d_splats.draw(SimpleNamespace(layout=RecordingLayout(log)), SimpleNamespace(scene=clean_scene, active_object=None))
+    ops = {entry[1]: entry[2] for entry in log if entry[0] == "operator"}
+    compact, render = ops["mlx3d.compact"], ops["mlx3d.render"]
+    assert (compact.max_gaussians, compact.min_opacity, compact.sh_degree) == (1234, pytest.approx(0.25), "1")
+    assert render.antialias is True and tuple(render.background) == pytest.approx((0.1, 0.2, 0.3)) and render.filepath == "//out.png"
+    labels = [entry[1] for entry in log if entry[0] == "label"]
+    assert "Compact" in labels and "Render (scene camera)" in labels
