@@ -15,6 +15,8 @@ from bpy_extras.io_utils import ExportHelper, ImportHelper
 from . import capture, ellipsoids, train, workflows
 from .splat_object import is_splat_object
 
+# Folder settings that may start with "//" (relative to the .blend); Blender 5.0 asks for the flag.
+BLEND_RELATIVE_PATH = {"PATH_SUPPORTS_BLEND_RELATIVE"} if bpy.app.version >= (5, 0, 0) else set()
 SH_ITEMS = [("FILE", "As in file", "Keep every SH coefficient of the file")] + [(str(d), f"Degree {d}", f"Truncate or zero-pad SH to degree {d}") for d in range(4)]
 KEEP_SH_ITEMS = [("KEEP", "Keep", "Keep the current SH degree")] + [(str(d), f"Degree {d}", f"Truncate SH to degree {d}") for d in range(4)]
 
@@ -247,7 +249,7 @@ class MLX3D_OT_render(bpy.types.Operator):
     selected_only: BoolProperty(name="Selected only", default=False, description="Render only selected splat objects (else all)")
     antialias: BoolProperty(name="Antialias", default=False, description="Mip-Splatting opacity compensation for the 2D blur")
     background: FloatVectorProperty(name="Background", subtype="COLOR", size=3, min=0.0, max=1.0, default=(0.0, 0.0, 0.0))
-    filepath: StringProperty(name="Save to", subtype="FILE_PATH", default="", description="Also save a PNG here (optional)")
+    filepath: StringProperty(name="Save to", subtype="FILE_PATH", default="", description="Also save a PNG here (optional)", options=BLEND_RELATIVE_PATH)
 
     @classmethod
     def poll(cls, context):
@@ -272,8 +274,6 @@ class MLX3D_OT_render(bpy.types.Operator):
         return {"FINISHED"}
 
 
-# Folder settings that may start with "//" (relative to the .blend); Blender 5.0 asks for the flag.
-BLEND_RELATIVE_PATH = {"PATH_SUPPORTS_BLEND_RELATIVE"} if bpy.app.version >= (5, 0, 0) else set()
 
 
 class _ModalWork:

@@ -24,7 +24,7 @@ class MLX3D_PG_settings(bpy.types.PropertyGroup):
     compact_sh: EnumProperty(name="SH degree", items=operators.KEEP_SH_ITEMS, default="KEEP")
     render_antialias: BoolProperty(name="Antialias", default=False)
     render_background: bpy.props.FloatVectorProperty(name="Background", subtype="COLOR", size=3, min=0.0, max=1.0, default=(0.0, 0.0, 0.0))
-    render_path: bpy.props.StringProperty(name="Save to", subtype="FILE_PATH", default="")
+    render_path: bpy.props.StringProperty(name="Save to", subtype="FILE_PATH", default="", options=operators.BLEND_RELATIVE_PATH)
     capture_dir: bpy.props.StringProperty(name="Folder", subtype="DIR_PATH", default="", description="Output folder of the dataset", options=operators.BLEND_RELATIVE_PATH)
     capture_views: IntProperty(name="Views", default=72, min=1, description="Orbit views, spread over the elevation rings")
     capture_radius: FloatProperty(name="Radius", default=0.0, min=0.0, subtype="DISTANCE", description="Orbit radius (0: 2.2 x the bounding-sphere radius)")
