@@ -11,12 +11,15 @@ that finite differences are meaningful.
 
 from __future__ import annotations
 
+import importlib.util
 import math
+from pathlib import Path
 
 import mlx.core as mx
 import numpy as np
 import pytest
 
+from mlx3d import native
 from mlx3d.render import raster_cpu
 from mlx3d.render.raster_cpu import get_num_threads, rasterize_cpu, set_num_threads
 
@@ -547,3 +550,184 @@ def test_num_threads_setting(monkeypatch):
         set_num_threads(-2)
     with pytest.raises(ValueError, match="num_threads"):
         set_num_threads(1.5)
+
+
+# --------------------------------------------------------------------------- #
+# sub-tile culling (the kernels skip pixel blocks outside each Gaussian's
+# reach): results are bitwise those of evaluating every (pixel, Gaussian) pair
+# --------------------------------------------------------------------------- #
+FROZEN = Path(__file__).resolve().parent / "data" / "raster_frozen.npz"
+FROZEN_INPUTS = ("means", "conics", "feats", "opac", "offsets", "ids", "width", "height", "tile")
+FORWARD_OUTPUTS = ("accum", "alpha", "last", "final_T")
+GRADIENTS = ("g_means", "g_conics", "g_feats", "g_opac")
+
+
+def _frozen_tools():
+    """tests/data/make_raster_frozen.py (its cotangents and outputs())."""
+    path = FROZEN.parent / "make_raster_frozen.py"
+    spec = importlib.util.spec_from_file_location("make_raster_frozen", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _variant(monkeypatch, isa):
+    if isa == "baseline":
+        monkeypatch.setenv("MLX3D_RASTER_ISA", "baseline")
+    else:
+        monkeypatch.delenv("MLX3D_RASTER_ISA", raising=False)
+    return native.core().rasterizer_simd_lanes()
+
+
+@pytest.mark.parametrize("cull", ["1", "0"])
+def test_frozen_outputs_are_bit_identical(monkeypatch, cull):
+    """Outputs (accum, alpha, last, final_T) and gradients that the kernel wrote
+    before it culled pixel blocks (tests/data/raster_frozen.npz, seeded scenes:
+    translucent, opaque, very anisotropic, faint, degenerate and non-finite
+    parameters, isolated Gaussians, alpha = 1/255 on pixel centres, signed
+    zeros; 1 to 5 channels; tiles of 8, 12 and 16) are reproduced bit for bit,
+    by each kernel variant, for 1 and 3 threads, with culling on and off."""
+    data = np.load(FROZEN)
+    tools = _frozen_tools()
+    names = sorted(k[: -len("/means")] for k in data.files if k.endswith("/means"))
+    assert len(names) >= 7
+    monkeypatch.setenv("MLX3D_RASTER_CULL", cull)
+    checked_grads = 0
+    for isa in ("best", "baseline"):
+        lanes = _variant(monkeypatch, isa)
+        # gradients depend on the lane width (lane sums), forward outputs do not
+        grads_from = {int(data["best_lanes"]): "best", int(data["baseline_lanes"]): "baseline"}.get(lanes)
+        for name in names:
+            case = {k: data[f"{name}/{k}"] for k in FROZEN_INPUTS}
+            for threads in (1, 3):
+                got = tools.outputs(case, num_threads=threads)
+                for k in FORWARD_OUTPUTS:
+                    assert got[k].tobytes() == data[f"{name}/best/{k}"].tobytes(), (name, isa, threads, k)
+                if grads_from is None:
+                    continue
+                for k in GRADIENTS:
+                    assert got[k].tobytes() == data[f"{name}/{grads_from}/{k}"].tobytes(), (name, isa, threads, k)
+                    checked_grads += 1
+    assert checked_grads > 0
+
+
+def adversarial_conics(rng, n, sigma=(0.05, 60.0), aniso=1e5):
+    """float32 conics of random rotated covariances: std-devs log-uniform in
+    ``sigma``, anisotropy log-uniform up to ``aniso`` (past the culling's 1e4
+    condition bound), some nearly singular and some with b = -0.0."""
+    major = np.exp(rng.uniform(np.log(sigma[0]), np.log(sigma[1]), n))
+    minor = major / np.exp(rng.uniform(0, np.log(aniso), n))
+    theta = rng.uniform(0, np.pi, n)
+    theta[::5] = rng.choice([0.0, np.pi / 2, np.pi / 4], len(theta[::5]))
+    cos, sin = np.cos(theta), np.sin(theta)
+    rot = np.stack([np.stack([cos, -sin], -1), np.stack([sin, cos], -1)], -2)
+    s = np.stack([major, minor], 1)
+    cov = rot @ (s[:, :, None] ** 2 * np.swapaxes(rot, -1, -2))
+    inv = np.linalg.inv(cov)
+    conics = np.stack([inv[:, 0, 0], inv[:, 0, 1], inv[:, 1, 1]], 1).astype(np.float32)
+    conics[7::11, 1] = -0.0
+    return conics
+
+
+def adversarial_opacities(rng, n):
+    """Log-uniform in [1e-3, 20], with many within 1e-5 of 1/255 (float32)."""
+    opac = np.exp(rng.uniform(np.log(1e-3), np.log(20.0), n))
+    near = rng.random(n) < 0.3
+    opac[near] = ALPHA_MIN * (1 + rng.uniform(-1e-5, 1e-5, near.sum()))
+    opac[::13] = ALPHA_MIN
+    opac[1::17] = 1.0
+    return opac.astype(np.float32)
+
+
+def isolated_scene(seed, tile, tiles_x, tiles_y, per_tile, channels):
+    """Each tile lists its own ``per_tile`` Gaussians, centred anywhere from 1.5
+    tiles before to 1.5 tiles after the tile: every (pixel, Gaussian) decision
+    shows in the outputs."""
+    rng = np.random.default_rng(seed)
+    tiles = tiles_x * tiles_y
+    n = tiles * per_tile
+    t = np.arange(n) // per_tile
+    origin = np.stack([(t % tiles_x) * tile, (t // tiles_x) * tile], 1)
+    means = (origin + rng.uniform(-1.5 * tile, 2.5 * tile, (n, 2))).astype(np.float32)
+    conics = adversarial_conics(rng, n)
+    opac = adversarial_opacities(rng, n)
+    feats = rng.uniform(-1, 1, (n, channels)).astype(np.float32)
+    offsets = np.arange(0, n + 1, per_tile, dtype=np.int32)
+    ids = np.arange(n, dtype=np.int32)
+    return (means, conics, feats, opac, offsets, ids), tiles_x * tile, tiles_y * tile
+
+
+def boundary_scene(seed, tile, tiles_x, tiles_y):
+    """One Gaussian per tile, its mean placed so that alpha = 1/255 (within a
+    relative 1e-6 of the exponent) falls on a pixel centre of the tile."""
+    rng = np.random.default_rng(seed)
+    n = tiles_x * tiles_y
+    conics = adversarial_conics(rng, n, sigma=(0.3, 30.0), aniso=1e3)
+    opac = np.exp(rng.uniform(np.log(0.005), np.log(1.5), n)).astype(np.float32)
+    c64, o64 = conics.astype(np.float64), opac.astype(np.float64)
+    t = np.arange(n)
+    pix = np.stack([(t % tiles_x) * tile, (t // tiles_x) * tile], 1) + rng.integers(0, tile, (n, 2)) + 0.5
+    ang = rng.uniform(0, 2 * np.pi, n)
+    u = np.stack([np.cos(ang), np.sin(ang)], 1)
+    q = c64[:, 0] * u[:, 0] ** 2 + 2 * c64[:, 1] * u[:, 0] * u[:, 1] + c64[:, 2] * u[:, 1] ** 2
+    dist = np.sqrt(2 * np.log(o64 / ALPHA_MIN) / q) * (1 + rng.uniform(-1e-6, 1e-6, n))
+    means = (pix + u * dist[:, None]).astype(np.float32)
+    feats = rng.uniform(0.5, 1, (n, 1)).astype(np.float32)
+    offsets = np.arange(n + 1, dtype=np.int32)
+    return (means, conics, feats, opac, offsets, np.arange(n, dtype=np.int32)), tiles_x * tile, tiles_y * tile
+
+
+def all_outputs(scene, width, height, tile, cot_seed=0):
+    """Forward outputs (with final_T) and gradients for random cotangents."""
+    args = [mx.array(x) for x in scene]
+    fwd = native.core().rasterize_forward(*args, width, height, tile, 2)
+    rng = np.random.default_rng(cot_seed)
+    cot_accum = rng.normal(size=(height, width, scene[2].shape[1])).astype(np.float32)
+    cot_alpha = rng.normal(size=(height, width)).astype(np.float32)
+    grads = grads_cpu(scene, width, height, tile, cot_accum, cot_alpha, num_threads=2)
+    mx.eval(fwd)
+    return [np.array(a) for a in fwd] + grads
+
+
+@pytest.mark.parametrize("isa", ["best", "baseline"])
+def test_culling_changes_no_bit(monkeypatch, isa):
+    """Culled and unculled kernels agree bit for bit on adversarial scenes:
+    isolated Gaussians (one or a few per tile list, anywhere around the tile),
+    alpha = 1/255 on pixel centres, extreme anisotropy and opacities near
+    1/255; tiles of 8, 13, 16 and 32 pixels; 1, 3 and 7 channels."""
+    _variant(monkeypatch, isa)
+    scenes = [
+        (isolated_scene(1, 16, 24, 16, 1, 1), 16),
+        (isolated_scene(2, 16, 16, 12, 3, 3), 16),
+        (isolated_scene(3, 13, 12, 10, 2, 7), 13),
+        (isolated_scene(4, 8, 24, 20, 1, 3), 8),
+        (isolated_scene(5, 32, 8, 6, 4, 3), 32),
+        (boundary_scene(6, 16, 24, 16), 16),
+        (boundary_scene(7, 13, 16, 16), 13),
+    ]
+    kept = 0
+    for (scene, width, height), tile in scenes:
+        monkeypatch.setenv("MLX3D_RASTER_CULL", "0")
+        full = all_outputs(scene, width, height, tile)
+        monkeypatch.delenv("MLX3D_RASTER_CULL")
+        culled = all_outputs(scene, width, height, tile)
+        names = FORWARD_OUTPUTS + GRADIENTS
+        for name, a, b in zip(names, full, culled):
+            assert a.tobytes() == b.tobytes(), (tile, width, height, name)
+        kept += int((full[2] > 0).sum())
+    assert kept > 10000  # the scenes do composite something
+
+
+def test_culling_on_random_and_dense_scenes(monkeypatch):
+    """Culled and unculled kernels agree bit for bit on ordinary scenes
+    (random_scene, partial tiles) and on a dense one with early stops."""
+    width, height = 70, 45
+    cases = [random_scene(21, 600, width, height, 3), random_scene(22, 300, width, height, 4, sigma=(0.3, 2.0)),
+             random_scene(23, 1500, width, height, 2, opacity=(0.5, 1.5), sigma=(2.0, 12.0))]
+    for scene in cases:
+        monkeypatch.setenv("MLX3D_RASTER_CULL", "0")
+        full = all_outputs(scene, width, height, 16, cot_seed=3)
+        monkeypatch.delenv("MLX3D_RASTER_CULL")
+        culled = all_outputs(scene, width, height, 16, cot_seed=3)
+        for a, b in zip(full, culled):
+            assert a.tobytes() == b.tobytes()

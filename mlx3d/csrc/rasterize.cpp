@@ -13,14 +13,21 @@
 // of the last Gaussian that contributed (0 when none did). The backward pass
 // walks entries [0, last) of the tile range back to front.
 //
-// Work layout. Each thread takes the next tile from an atomic counter. A tile
-// first gathers its Gaussians into contiguous arrays (entries with an id
-// outside [0, N) get opacity 0 and are skipped), then processes its pixels in
+// Work layout. Each Gaussian is first packed into a 64-byte Splat record
+// (mean, conic, opacity, up to 4 features and its "reach", see "sub-tile
+// culling"), in parallel. Each thread then takes the next tile from an atomic
+// counter. A tile gathers its entries' records contiguously (entries with an
+// id outside [0, N) get opacity 0 and are skipped) and processes its pixels in
 // blocks of one SIMD vector of pixels (8 with AVX2, 4 with SSE2/NEON, see
-// "variants" below), row-major: the Gaussian loop is outside, each step runs
-// the per-pixel math on all lanes at once, and a block stops when all of its
-// pixels have stopped. Forward results do not depend on the vector width:
-// each lane runs exactly the scalar per-pixel recurrence.
+// "variants" below). Each block runs only the entries whose reach holds one of
+// its pixels, in tile order: the Gaussian loop is outside, each step runs the
+// per-pixel math on all lanes at once, and a block stops when all of its
+// pixels have stopped. The forward pass lists entries per block in chunks
+// (a tile whose pixels all stop early lists no more) and uses rectangular
+// blocks (4x2 pixels for 8 lanes); the backward pass uses row-major runs of
+// pixels, which fix its lane sums (below). Forward results depend neither on
+// the vector width nor on the block shape: each lane runs exactly the scalar
+// per-pixel recurrence.
 //
 // Determinism of the backward pass. Gradients are first accumulated per
 // *tile entry* (one slot per flatten_ids position) by the single thread that
@@ -35,9 +42,11 @@
 
 #include <algorithm>
 #include <atomic>
+#include <cmath>
 #include <cstdint>
 #include <cstdlib>
 #include <cstring>
+#include <limits>
 #include <memory>
 #include <sstream>
 #include <stdexcept>
@@ -80,6 +89,9 @@ inline __attribute__((always_inline)) LaneF8 rm_pow2i(LaneF8 n) {
 #if defined(__x86_64__) && defined(__ELF__)
 #define MLX3D_RASTER_AVX2 1
 #endif
+#if defined(__x86_64__)
+#include <immintrin.h>
+#endif
 #endif
 #include "raster_math.h"
 
@@ -108,6 +120,13 @@ template <class V>
 RM_INLINE void store_lanes(void* p, const V& v) {
   std::memcpy(p, &v, sizeof(V));
 }
+// All lanes = v (no arithmetic, so -0.0f stays -0.0f).
+template <class LF>
+RM_INLINE LF splat(float v) {
+  LF r;
+  for (int l = 0; l < lanes_of<LF>(); ++l) reinterpret_cast<float*>(&r)[l] = v;
+  return r;
+}
 template <class LI>
 RM_INLINE bool any_lane(const LI& m) {
   int32_t a[lanes_of<LI>()];
@@ -116,6 +135,21 @@ RM_INLINE bool any_lane(const LI& m) {
   for (int l = 0; l < lanes_of<LI>(); ++l) any |= a[l];
   return any != 0;
 }
+#if defined(MLX3D_RASTER_AVX2)
+// One vptest instead of eight lane extractions (only called from AVX2 code;
+// plain inline, as always_inline would be refused inside the generic
+// templates before they are inlined into the AVX2 kernels).
+__attribute__((target("avx2"))) inline bool any_lane(const LaneI8& m) {
+  const __m256i v = (__m256i)m;
+  return !_mm256_testz_si256(v, v);
+}
+#endif
+#if defined(MLX3D_RASTER_VECTOR_LANES) && defined(__x86_64__)
+// SSE (x86-64 baseline): the lanes' sign bits.
+RM_INLINE bool any_lane(const LaneI4& m) {
+  return _mm_movemask_ps((__m128)m) != 0;
+}
+#endif
 
 struct Geometry {
   int width = 0, height = 0, tile = 16, tiles_x = 0, tiles_y = 0, channels = 1;
@@ -136,6 +170,23 @@ Geometry make_geometry(int width, int height, int tile, int64_t n, int channels,
   return g;
 }
 
+// Features held in each Splat record (more channels are gathered separately).
+constexpr int kMaxFixedChannels = 4;
+
+// A Gaussian as the tile kernels read it: one 64-byte record per Gaussian,
+// built once per evaluation (make_splat), so that gathering a tile entry is
+// one cache line.
+struct alignas(64) Splat {
+  float x, y;         // mean
+  float a, b, c, op;  // 0.0f + conic and opacity: the operands the per-pixel math has always used
+                      // (the sum maps -0.0f to +0.0f)
+  float hx, hy;       // reach box half-extents (pixels); +inf: no bound; < 0: reaches no pixel
+  float slope, p, r;  // reach row spans (see "sub-tile culling")
+  int32_t pad;
+  float f[kMaxFixedChannels];  // features, when there are at most kMaxFixedChannels
+};
+static_assert(sizeof(Splat) == 64, "one cache line per Splat");
+
 struct Inputs {
   const float* means = nullptr;
   const float* conics = nullptr;
@@ -144,6 +195,7 @@ struct Inputs {
   const int32_t* offsets = nullptr;
   const int32_t* ids = nullptr;
   const int64_t* ranges = nullptr;  // sanitised tile_offsets (see sanitise_offsets)
+  const Splat* splats = nullptr;    // (N,) see make_splat
 };
 
 // tile_offsets clamped to [0, M] and made non-decreasing, so that tile ranges
@@ -165,44 +217,118 @@ inline void tile_range(const Inputs& in, const Geometry&, int t, int64_t& lo, in
   hi = in.ranges[t + 1];
 }
 
-// Per-thread scratch: the tile's Gaussians gathered contiguously, and lane buffers.
-struct Scratch {
-  std::vector<float> x, y, a, b, c, op, feat;  // gathered, one row per tile entry
-  std::vector<float> lane;                      // per-channel lane state
-  std::vector<float> entry_lanes;               // backward: per-entry, per-field lane sums
+// ------------------------------------------------------------ sub-tile culling
+// A Gaussian's reach is a set of pixels outside which its alpha is certainly
+// skipped: at every other pixel centre the kernels' float32 arithmetic
+// (rm_power, rm_exp, rm_alpha) gives power > 0 or alpha < 1/255. It is a box
+// (half-extents hx, hy around the mean) and, inside the box, one column span
+// per pixel row (the row's chord of a slightly enlarged ellipse). A block of
+// pixels is only run against the tile entries whose reach holds one of its
+// pixels. A pair left out is one that every lane would have skipped, which
+// changes no state (T, accum, last, which lanes go on; in the backward pass,
+// a Gaussian no lane uses), so the results are bitwise those of evaluating
+// every pair. MLX3D_RASTER_CULL=0 in the environment turns culling off (read
+// at each evaluation; for tests).
+//
+// Why pixels outside the reach skip (u = 2^-24; a, b, c, o: the float inputs;
+// d = (dx, dy) = mean - pixel centre, exact; d' = the kernel's float offsets):
+// - Let L = ln(o / (1/255f)) + 1e-5. rm_exp(x) <= exp(x) (1 + 1e-7) for every
+//   float x in [-88, 0] (checked over all of them), so a computed power
+//   p <= 0 with p < -L gives o * rm_exp(p) < (1/255f)(1 - 9.9e-6), whose float
+//   product is below 1/255f: skipped. When L <= 0 (o <= (1/255f) e^-1e-5,
+//   including o <= 0), o * rm_exp(p) < 1/255f for every p <= 0: the Gaussian
+//   reaches nothing.
+// - rm_power evaluated as written (this file is compiled with
+//   -ffp-contract=off; a fused multiply-add would only lower the error) is at
+//   most (1 - u)(-Q/2 + 1.6 u S) with Q = a dx'² + 2b dx'dy' + c dy'² and
+//   S = a dx'² + c dy'² + 2|b dx'dy'|. For a positive definite conic,
+//   S <= 2 (a dx'² + c dy'²) <= 2 rho Q with rho = max(a, c) / lambda_min; with
+//   rho <= 1e4 the power is at most -0.498 Q. So Q(d') > K = 2 (L + 1e-6) / 0.99
+//   gives power < -L.
+// - Box: Q(d') >= dx'² / Sxx with Sxx = c / det (Sigma = conic^-1), and |dx'| >=
+//   |dx| (1 - u), so |dx| > hx = sqrt(K Sxx) (1 + 1e-4) + 0.01 gives Q(d') > K
+//   (likewise dy with Syy = a / det). The margins also cover the rounding of
+//   the box arithmetic, done in double.
+// - Row spans: |Q(d') - Q(d)| <= 2.01 u S(d) <= 2.5e-3 Q(d) (rho <= 1e4), so
+//   Q(d) > 1.01 K gives Q(d') > K. With K' = 1.01 K,
+//   Q(d) = a (dx + (b/a) dy)² + (det/a) dy², so in row dy the pixels with
+//   Q(d) <= K' have |dx + slope dy| <= sqrt(p - r dy²), slope = b/a, p = K'/a,
+//   r = det/a². p is stored rounded up and r rounded down (float), slope
+//   rounded to nearest (|slope dy| <= hx inside the box, so that costs at most
+//   u hx); the span is computed in double and widened by 1e-4 hx + 0.01
+//   pixels, far above those errors (cancellation near the ellipse's top and
+//   bottom rows costs at most ~1.5e-8 hx).
+// Anything else gets no bound (evaluated everywhere in its tiles): non-finite
+// inputs, a or c below 1e-30 (keeps rm_power clear of underflow), det <= 0,
+// rho > 1e4, a half-extent above 1e6 or a mean farther than 1e7 pixels from
+// the origin.
+constexpr double kReachCondMax = 1e4;
+constexpr double kReachMinDiag = 1e-30;
+constexpr double kReachMaxHalf = 1e6;
+constexpr double kReachMaxCoord = 1e7;
 
-  // `count` zeroed lane vectors in `buf`, 32-byte aligned. (alignof of a
-  // 32-byte vector type is 16 outside AVX code, so std::vector<LF> would not do.)
-  template <class LF>
-  static LF* lanes(std::vector<float>& buf, size_t count) {
-    constexpr size_t kAlign = 32;
-    buf.assign(count * lanes_of<LF>() + kAlign / sizeof(float), 0.0f);
-    const uintptr_t p = reinterpret_cast<uintptr_t>(buf.data());
-    return reinterpret_cast<LF*>((p + kAlign - 1) / kAlign * kAlign);
-  }
+float float_up(double v) {
+  const float f = static_cast<float>(v);
+  return static_cast<double>(f) < v ? std::nextafter(f, std::numeric_limits<float>::infinity()) : f;
+}
+float float_down(double v) {
+  const float f = static_cast<float>(v);
+  return static_cast<double>(f) > v ? std::nextafter(f, -std::numeric_limits<float>::infinity()) : f;
+}
 
-  void gather(const Inputs& in, const Geometry& geo, int64_t lo, int64_t hi) {
-    const int64_t n = hi - lo;
-    const int C = geo.channels;
-    x.resize(n), y.resize(n), a.resize(n), b.resize(n), c.resize(n), op.resize(n);
-    feat.resize(static_cast<size_t>(n) * C);
-    for (int64_t j = 0; j < n; ++j) {
-      const int64_t g = in.ids[lo + j];
-      if (g < 0 || g >= geo.num_gaussians) {
-        x[j] = y[j] = a[j] = b[j] = c[j] = op[j] = 0.0f;
-        std::fill_n(&feat[j * C], C, 0.0f);
-        continue;
-      }
-      x[j] = in.means[2 * g];
-      y[j] = in.means[2 * g + 1];
-      a[j] = in.conics[3 * g];
-      b[j] = in.conics[3 * g + 1];
-      c[j] = in.conics[3 * g + 2];
-      op[j] = in.opacities[g];
-      std::memcpy(&feat[j * C], &in.features[g * C], sizeof(float) * C);
-    }
+// The reach fields of a Splat (see above) from a Gaussian's float conic and opacity.
+void set_reach(float a_, float b_, float c_, float o_, Splat& s) {
+  s.hx = s.hy = std::numeric_limits<float>::infinity();
+  s.slope = s.p = s.r = 0.0f;
+  const double a = a_, b = b_, c = c_, o = o_;
+  if (!std::isfinite(o)) return;
+  const double L = o > 0.0 ? std::log(o / static_cast<double>(RM_ALPHA_MIN)) + 1e-5 : -1.0;
+  if (L <= 0.0) {
+    s.hx = s.hy = -1.0f;
+    return;
   }
-};
+  if (!(std::isfinite(a) && std::isfinite(b) && std::isfinite(c))) return;
+  if (!(a >= kReachMinDiag && c >= kReachMinDiag)) return;
+  const double det = a * c - b * b;
+  if (!(det > 0.0)) return;
+  const double half = 0.5 * (a - c);
+  const double lambda_max = 0.5 * (a + c) + std::sqrt(half * half + b * b);
+  const double lambda_min = det / lambda_max;
+  if (!(std::max(a, c) <= kReachCondMax * lambda_min)) return;
+  const double k = 2.0 * (L + 1e-6) / 0.99;
+  const double ex = std::sqrt(k * c / det) * (1.0 + 1e-4) + 0.01;
+  const double ey = std::sqrt(k * a / det) * (1.0 + 1e-4) + 0.01;
+  if (!(ex <= kReachMaxHalf && ey <= kReachMaxHalf)) return;
+  s.hx = float_up(ex);
+  s.hy = float_up(ey);
+  s.slope = static_cast<float>(b / a);
+  s.p = float_up(1.01 * k / a);
+  s.r = float_down(det / (a * a));
+}
+
+// Splat g (culling off: no reach bound).
+void make_splat(const Inputs& in, const Geometry& geo, int64_t g, bool cull, Splat& s) {
+  s.x = in.means[2 * g];
+  s.y = in.means[2 * g + 1];
+  s.a = 0.0f + in.conics[3 * g];
+  s.b = 0.0f + in.conics[3 * g + 1];
+  s.c = 0.0f + in.conics[3 * g + 2];
+  s.op = 0.0f + in.opacities[g];
+  s.pad = 0;
+  if (cull) {
+    set_reach(in.conics[3 * g], in.conics[3 * g + 1], in.conics[3 * g + 2], in.opacities[g], s);
+  } else {
+    s.hx = s.hy = std::numeric_limits<float>::infinity();
+    s.slope = s.p = s.r = 0.0f;
+  }
+  const int C = geo.channels;
+  for (int ch = 0; ch < kMaxFixedChannels; ++ch) s.f[ch] = ch < C ? in.features[g * C + ch] : 0.0f;
+}
+
+bool culling_enabled() {
+  const char* v = std::getenv("MLX3D_RASTER_CULL");
+  return !(v && std::strcmp(v, "0") == 0);
+}
 
 struct TileBox {
   int x0, y0, w, h;
@@ -217,6 +343,151 @@ inline TileBox tile_box(const Geometry& geo, int t) {
   return box;
 }
 
+// Column spans of rows [r0, r1] (see "sub-tile culling"): lo[r], hi[r] =
+// ceil(centre - half), floor(centre + half), clamped to [c0, c1], with
+// centre = cx + slope dy, half = sqrt(max(p - r dy², 0)) + margin, dy = cy - r.
+void row_spans_scalar(double cx, double cy, double slope, double p, double rc, double margin, int r0, int r1, int c0,
+                      int c1, int* lo, int* hi) {
+  for (int r = r0; r <= r1; ++r) {
+    const double dy = cy - r;
+    const double centre = cx + slope * dy;
+    const double half = std::sqrt(std::max(p - rc * dy * dy, 0.0)) + margin;
+    lo[r] = std::max(c0, static_cast<int>(std::ceil(centre - half)));
+    hi[r] = std::min(c1, static_cast<int>(std::floor(centre + half)));
+  }
+}
+
+#if defined(MLX3D_RASTER_AVX2)
+// The same, four rows at a time (the same double arithmetic); may write up to
+// 3 entries past r1.
+__attribute__((target("avx2"))) void row_spans_avx2(double cx, double cy, double slope, double p, double rc,
+                                                    double margin, int r0, int r1, int c0, int c1, int* lo, int* hi) {
+  const __m256d vcx = _mm256_set1_pd(cx), vcy = _mm256_set1_pd(cy), vslope = _mm256_set1_pd(slope);
+  const __m256d vp = _mm256_set1_pd(p), vrc = _mm256_set1_pd(rc), vmargin = _mm256_set1_pd(margin);
+  const __m256d step = _mm256_set_pd(3.0, 2.0, 1.0, 0.0), zero = _mm256_setzero_pd();
+  const __m128i vc0 = _mm_set1_epi32(c0), vc1 = _mm_set1_epi32(c1);
+  for (int r = r0; r <= r1; r += 4) {
+    const __m256d dy = _mm256_sub_pd(vcy, _mm256_add_pd(_mm256_set1_pd(static_cast<double>(r)), step));
+    const __m256d centre = _mm256_add_pd(vcx, _mm256_mul_pd(vslope, dy));
+    const __m256d arg = _mm256_max_pd(_mm256_sub_pd(vp, _mm256_mul_pd(_mm256_mul_pd(vrc, dy), dy)), zero);
+    const __m256d half = _mm256_add_pd(_mm256_sqrt_pd(arg), vmargin);
+    const __m128i l = _mm256_cvttpd_epi32(_mm256_ceil_pd(_mm256_sub_pd(centre, half)));
+    const __m128i h = _mm256_cvttpd_epi32(_mm256_floor_pd(_mm256_add_pd(centre, half)));
+    _mm_storeu_si128(reinterpret_cast<__m128i*>(lo + r), _mm_max_epi32(l, vc0));
+    _mm_storeu_si128(reinterpret_cast<__m128i*>(hi + r), _mm_min_epi32(h, vc1));
+  }
+}
+#endif
+
+// The reach of Splat e in the tile: rows [r0, r1] and, for each, tile-local
+// columns [lo[r], hi[r]] (inclusive; lo > hi: none). Returns false when it
+// holds no pixel of the tile. lo and hi need box.h + 3 entries.
+template <bool kAvx2>
+RM_INLINE bool reach_spans(const Splat& e, const TileBox& box, int& r0, int& r1, int* lo, int* hi) {
+  r0 = 0;
+  r1 = box.h - 1;
+  int c0 = 0, c1 = box.w - 1;
+  if (e.hx < 0.0f || e.hy < 0.0f) return false;
+  const bool bounded = e.hx <= kReachMaxHalf && e.hy <= kReachMaxHalf && std::fabs(e.x) <= kReachMaxCoord &&
+                       std::fabs(e.y) <= kReachMaxCoord;  // false for NaN too
+  if (!bounded) {
+    for (int r = r0; r <= r1; ++r) lo[r] = c0, hi[r] = c1;
+    return true;
+  }
+  // tile-local pixel column q has its centre at x0 + q + 0.5
+  const double cx = static_cast<double>(e.x) - 0.5 - box.x0, cy = static_cast<double>(e.y) - 0.5 - box.y0;
+  c0 = std::max(c0, static_cast<int>(std::ceil(cx - e.hx)));
+  c1 = std::min(c1, static_cast<int>(std::floor(cx + e.hx)));
+  r0 = std::max(r0, static_cast<int>(std::ceil(cy - e.hy)));
+  r1 = std::min(r1, static_cast<int>(std::floor(cy + e.hy)));
+  if (c0 > c1 || r0 > r1) return false;
+  const double margin = 1e-4 * e.hx + 0.01;
+#if defined(MLX3D_RASTER_AVX2)
+  if constexpr (kAvx2) {
+    row_spans_avx2(cx, cy, e.slope, e.p, e.r, margin, r0, r1, c0, c1, lo, hi);
+    return true;
+  }
+#endif
+  row_spans_scalar(cx, cy, e.slope, e.p, e.r, margin, r0, r1, c0, c1, lo, hi);
+  return true;
+}
+
+// Calls fn(b) once for each backward pixel block b (kLanes consecutive pixels
+// in row-major order within a tile of width w) holding a pixel of the spans,
+// in increasing order.
+template <int kLanes, class Fn>
+RM_INLINE void for_each_row_block(int r0, int r1, const int* lo, const int* hi, int w, Fn&& fn) {
+  int next = 0;  // blocks below are done (a block can span two rows)
+  for (int r = r0; r <= r1; ++r) {
+    if (lo[r] > hi[r]) continue;
+    const int b1 = (r * w + hi[r]) / kLanes;
+    for (int b = std::max((r * w + lo[r]) / kLanes, next); b <= b1; ++b) fn(b);
+    next = b1 + 1;
+  }
+}
+
+// Per-thread scratch: the tile's Gaussians gathered contiguously, and lane buffers.
+struct Scratch {
+  std::vector<Splat> entries;                   // gathered, one per tile entry
+  std::vector<float> feat;                      // gathered features (more than kMaxFixedChannels)
+  std::vector<float> lane;                      // per-block lane state
+  std::vector<float> entry_lanes;               // backward: per-entry, per-field lane sums
+  std::vector<int32_t> list, count, cursor;     // per-block entry lists
+  std::vector<int32_t> block_kmax;              // backward: entries each block walks
+  std::vector<uint8_t> done;                    // forward: blocks whose pixels all stopped
+  std::vector<int32_t> span_lo, span_hi;        // one entry's column spans, per tile row
+
+  // `count` zeroed lane vectors in `buf`, 32-byte aligned. (alignof of a
+  // 32-byte vector type is 16 outside AVX code, so std::vector<LF> would not do.)
+  template <class LF>
+  static LF* lanes(std::vector<float>& buf, size_t count) {
+    constexpr size_t kAlign = 32;
+    buf.assign(count * lanes_of<LF>() + kAlign / sizeof(float), 0.0f);
+    const uintptr_t p = reinterpret_cast<uintptr_t>(buf.data());
+    return reinterpret_cast<LF*>((p + kAlign - 1) / kAlign * kAlign);
+  }
+
+  void reserve(int64_t n, int C, int rows) {
+    if (entries.size() < static_cast<size_t>(n)) entries.resize(n);
+    if (C > kMaxFixedChannels && feat.size() < static_cast<size_t>(n) * C) feat.resize(static_cast<size_t>(n) * C);
+    if (span_lo.size() < static_cast<size_t>(rows) + 4) span_lo.resize(rows + 4), span_hi.resize(rows + 4);
+  }
+
+  // Entries [k0, k1) of the tile whose range starts at lo; reserve() first.
+  // An id outside [0, N) gets opacity 0 and no reach (it never contributes).
+  void gather(const Inputs& in, const Geometry& geo, int64_t lo, int k0, int k1) {
+    const int C = geo.channels;
+    for (int j = k0; j < k1; ++j) {
+      const int64_t g = in.ids[lo + j];
+      Splat& e = entries[j];
+      const bool ok = g >= 0 && g < geo.num_gaussians;
+      if (ok) {
+        e = in.splats[g];
+      } else {
+        std::memset(&e, 0, sizeof(e));
+        e.hx = e.hy = -1.0f;
+      }
+      if (C > kMaxFixedChannels) {
+        float* f = &feat[static_cast<size_t>(j) * C];
+        if (ok)
+          std::memcpy(f, &in.features[g * C], sizeof(float) * C);
+        else
+          std::fill_n(f, C, 0.0f);
+      }
+    }
+  }
+
+  // Features of gathered entry k.
+  template <int CC>
+  RM_INLINE const float* features(int k, int C) const {
+    if constexpr (CC > 0) {
+      return entries[k].f;
+    } else {
+      return C > kMaxFixedChannels ? &feat[static_cast<size_t>(k) * C] : entries[k].f;
+    }
+  }
+};
+
 struct ForwardOut {
   float* accum;
   float* alpha;
@@ -224,8 +495,8 @@ struct ForwardOut {
   float* final_T;
 };
 
-// Pixel centres of block q0 (kLanes pixels, row-major in the tile) and which
-// lanes are inside the image tile (a mask: nonzero = valid).
+// Pixel centres of the backward block q0 (kLanes pixels, row-major in the
+// tile) and which lanes are inside the image tile (a mask: nonzero = valid).
 template <class LF, class LI>
 RM_INLINE void block_pixels(const TileBox& box, int q0, LF& px, LF& py, LI& valid, int64_t* pix, const Geometry& geo) {
   constexpr int kLanes = lanes_of<LF>();
@@ -246,34 +517,75 @@ RM_INLINE void block_pixels(const TileBox& box, int q0, LF& px, LF& py, LI& vali
   valid = load_lanes<LI>(v);
 }
 
-template <class LF, class LI>
-RM_INLINE void forward_tile_impl(const Inputs& in, const Geometry& geo, int t, Scratch& s, const ForwardOut& out) {
-  constexpr int kLanes = lanes_of<LF>();
-  int64_t lo, hi;
-  tile_range(in, geo, t, lo, hi);
-  const int n = static_cast<int>(hi - lo);
-  s.gather(in, geo, lo, hi);
-  const int C = geo.channels;
-  const TileBox box = tile_box(geo, t);
-  const int npix = box.w * box.h;
-  LF* acc = Scratch::lanes<LF>(s.lane, C);  // per channel
-  const LF zero{};
-  const LI izero{};
+// Forward pixel blocks are kW x kH rectangles (4x2 pixels for 8 lanes, 2x2
+// for 4), which meet fewer small Gaussians than a row of pixels; each lane
+// runs its own pixel's recurrence, so the layout does not change any result.
+template <int kLanes>
+constexpr int block_h() {
+  return kLanes >= 4 ? 2 : 1;
+}
 
-  for (int q0 = 0; q0 < npix; q0 += kLanes) {
-    LF px, py;
-    LI active;
-    int64_t pix[kLanes];
-    block_pixels(box, q0, px, py, active, pix, geo);
-    LF T = zero + 1.0f;
-    LI nlast = izero;
-    for (int ch = 0; ch < C; ++ch) acc[ch] = zero;
-    for (int k = 0; k < n; ++k) {
-      const LF dx = s.x[k] - px;
-      const LF dy = s.y[k] - py;
-      const LF power = rm_power(zero + s.a[k], zero + s.b[k], zero + s.c[k], dx, dy);
-      const LF g = rm_exp(power);
-      const LF alpha = rm_alpha(zero + s.op[k], g, power);
+// Pixel centres of forward block (bx, by) and which lanes are inside the tile.
+template <class LF, class LI>
+RM_INLINE void rect_pixels(const TileBox& box, int bx, int by, LF& px, LF& py, LI& valid, int64_t* pix,
+                           const Geometry& geo) {
+  constexpr int kLanes = lanes_of<LF>();
+  constexpr int kH = block_h<kLanes>(), kW = kLanes / kH;
+  float fx[kLanes], fy[kLanes];
+  int32_t v[kLanes];
+  for (int l = 0; l < kLanes; ++l) {
+    const int qx = bx * kW + l % kW, qy = by * kH + l / kW;
+    const bool in = qx < box.w && qy < box.h;
+    fx[l] = static_cast<float>(box.x0 + qx) + 0.5f;
+    fy[l] = static_cast<float>(box.y0 + qy) + 0.5f;
+    v[l] = in ? -1 : 0;
+    pix[l] = in ? static_cast<int64_t>(box.y0 + qy) * geo.width + (box.x0 + qx) : -1;
+  }
+  px = load_lanes<LF>(fx);
+  py = load_lanes<LF>(fy);
+  valid = load_lanes<LI>(v);
+}
+
+// Forward state of one pixel block in Scratch::lane: px, py, T, active (mask),
+// nlast (int lanes), then accum per channel.
+constexpr int kBlockFixed = 5;
+// Tile entries are listed per block in chunks of this many, so that a tile
+// whose pixels all stop early does not list the rest.
+constexpr int kForwardChunk = 64;
+
+// Runs block state `sb` over tile entries list[0..count) (in order); returns
+// false when all of the block's pixels have stopped.
+template <class LF, class LI, int CC>
+RM_INLINE bool composite_block(const Scratch& s, LF* sb, int C, const int32_t* list, int count) {
+  const LI izero{};
+  const LF px = sb[0], py = sb[1];
+  LF T = sb[2];
+  LI active = load_lanes<LI>(&sb[3]);
+  LI nlast = load_lanes<LI>(&sb[4]);
+  LF acc_reg[CC > 0 ? CC : 1];
+  LF* acc = sb + kBlockFixed;
+  if constexpr (CC > 0) {
+    for (int ch = 0; ch < CC; ++ch) acc_reg[ch] = acc[ch];
+    acc = acc_reg;
+    C = CC;
+  }
+  // Alphas of a batch of entries first (independent of each other, so their
+  // exp evaluations overlap), then the front-to-back recurrence over them.
+  constexpr int kBatch = 8;
+  LF alphas[kBatch];
+  bool live = true;
+  for (int i0 = 0; i0 < count && live; i0 += kBatch) {
+    const int nb = std::min(kBatch, count - i0);
+    for (int j = 0; j < nb; ++j) {
+      const Splat& e = s.entries[list[i0 + j]];
+      const LF dx = e.x - px;
+      const LF dy = e.y - py;
+      const LF power = rm_power(splat<LF>(e.a), splat<LF>(e.b), splat<LF>(e.c), dx, dy);
+      alphas[j] = rm_alpha(splat<LF>(e.op), rm_exp(power), power);
+    }
+    for (int j = 0; j < nb; ++j) {
+      const int k = list[i0 + j];
+      const LF alpha = alphas[j];
       const LF next_T = rm_next_T(T, alpha);
       const LI goes_on = (next_T < RM_T_MIN) == 0;  // a skipped Gaussian keeps T >= RM_T_MIN
       const LI use = active & (alpha > 0.0f) & goes_on;
@@ -281,14 +593,91 @@ RM_INLINE void forward_tile_impl(const Inputs& in, const Geometry& geo, int t, S
       T = use ? next_T : T;
       nlast = use ? izero + (k + 1) : nlast;
       active = active & goes_on;
-      const float* f = &s.feat[static_cast<size_t>(k) * C];
+      const float* f = s.template features<CC>(k, C);
       for (int ch = 0; ch < C; ++ch) acc[ch] = use ? acc[ch] + f[ch] * w : acc[ch];
-      if (!any_lane(active)) break;
+      if (!any_lane(active)) {
+        live = false;
+        break;
+      }
     }
+  }
+  sb[2] = T;
+  store_lanes(&sb[3], active);
+  store_lanes(&sb[4], nlast);
+  if constexpr (CC > 0)
+    for (int ch = 0; ch < CC; ++ch) sb[kBlockFixed + ch] = acc_reg[ch];
+  return live;
+}
+
+template <class LF, class LI, int CC>
+RM_INLINE void forward_tile_impl(const Inputs& in, const Geometry& geo, int t, Scratch& s, const ForwardOut& out) {
+  constexpr int kLanes = lanes_of<LF>();
+  constexpr int kH = block_h<kLanes>(), kW = kLanes / kH;
+  int64_t lo, hi;
+  tile_range(in, geo, t, lo, hi);
+  const int n = static_cast<int>(hi - lo);
+  const int C = geo.channels;
+  const TileBox box = tile_box(geo, t);
+  const int bw = (box.w + kW - 1) / kW, bh = (box.h + kH - 1) / kH;
+  const int nb = bw * bh;  // block (bx, by) is number by * bw + bx
+  const int S = kBlockFixed + C;
+  LF* st = Scratch::lanes<LF>(s.lane, static_cast<size_t>(nb) * S);  // zeroed: accum = 0
+  const LF zero{};
+  const LI izero{};
+  int64_t pix[kLanes];
+  for (int b = 0; b < nb; ++b) {
+    LF* sb = st + static_cast<size_t>(b) * S;
+    LI valid;
+    rect_pixels(box, b % bw, b / bw, sb[0], sb[1], valid, pix, geo);
+    sb[2] = zero + 1.0f;
+    store_lanes(&sb[3], valid);  // lanes outside the image never start
+    store_lanes(&sb[4], izero);
+  }
+  s.reserve(n, C, box.h);
+  s.done.assign(nb, 0);
+  s.count.resize(nb);
+  if (s.list.size() < static_cast<size_t>(nb) * kForwardChunk) s.list.resize(static_cast<size_t>(nb) * kForwardChunk);
+  int32_t* cnt = s.count.data();
+  int32_t* lists = s.list.data();
+  uint8_t* done = s.done.data();
+  int* span_lo = s.span_lo.data();
+  int* span_hi = s.span_hi.data();
+  int alive = nb;
+  for (int k0 = 0; k0 < n && alive > 0; k0 += kForwardChunk) {
+    const int k1 = std::min(n, k0 + kForwardChunk);
+    s.gather(in, geo, lo, k0, k1);
+    std::fill_n(cnt, nb, 0);
+    for (int k = k0; k < k1; ++k) {
+      int r0, r1;
+      if (!reach_spans<kLanes == 8>(s.entries[k], box, r0, r1, span_lo, span_hi)) continue;
+      for (int by = r0 / kH; by <= r1 / kH; ++by) {
+        int c0 = box.w, c1 = -1;
+        for (int r = std::max(r0, by * kH); r <= std::min(r1, by * kH + kH - 1); ++r) {
+          c0 = std::min(c0, span_lo[r]);
+          c1 = std::max(c1, span_hi[r]);
+        }
+        for (int b = by * bw + c0 / kW; c0 <= c1 && b <= by * bw + c1 / kW; ++b)
+          if (!done[b]) lists[static_cast<size_t>(b) * kForwardChunk + cnt[b]++] = k;
+      }
+    }
+    for (int b = 0; b < nb; ++b) {
+      if (done[b] || cnt[b] == 0) continue;
+      LF* sb = st + static_cast<size_t>(b) * S;
+      if (!composite_block<LF, LI, CC>(s, sb, C, lists + static_cast<size_t>(b) * kForwardChunk, cnt[b])) {
+        done[b] = 1;
+        --alive;
+      }
+    }
+  }
+  for (int b = 0; b < nb; ++b) {
+    const LF* sb = st + static_cast<size_t>(b) * S;
+    LF px, py;
+    LI valid;
+    rect_pixels(box, b % bw, b / bw, px, py, valid, pix, geo);
     float Ta[kLanes], ca[kLanes];
     int32_t la[kLanes];
-    store_lanes(Ta, T);
-    store_lanes(la, nlast);
+    store_lanes(Ta, sb[2]);
+    store_lanes(la, load_lanes<LI>(&sb[4]));
     for (int l = 0; l < kLanes; ++l) {
       if (pix[l] < 0) continue;
       out.alpha[pix[l]] = 1.0f - Ta[l];
@@ -296,7 +685,7 @@ RM_INLINE void forward_tile_impl(const Inputs& in, const Geometry& geo, int t, S
       out.final_T[pix[l]] = Ta[l];
     }
     for (int ch = 0; ch < C; ++ch) {
-      store_lanes(ca, acc[ch]);
+      store_lanes(ca, sb[kBlockFixed + ch]);
       for (int l = 0; l < kLanes; ++l)
         if (pix[l] >= 0) out.accum[pix[l] * C + ch] = ca[l];
     }
@@ -312,8 +701,11 @@ struct BackwardIn {
 
 // Accumulates the tile's gradients into entry_grad[(e - lo) * K + field]
 // (K = 6 + C fields: mean_x, mean_y, conic a, b, c, opacity, features), which
-// the caller zeroed.
-template <class LF, class LI>
+// the caller zeroed. Pixel blocks are kLanes consecutive pixels in row-major
+// order (the lane sums, and so the gradients' last bits, depend on this
+// grouping); each walks back from the largest `last` of its pixels, over the
+// entries that reach it.
+template <class LF, class LI, int CC>
 RM_INLINE void backward_tile_impl(const Inputs& in, const Geometry& geo, int t, Scratch& s, const BackwardIn& bw,
                                   float* entry_grad) {
   constexpr int kLanes = lanes_of<LF>();
@@ -321,32 +713,78 @@ RM_INLINE void backward_tile_impl(const Inputs& in, const Geometry& geo, int t, 
   tile_range(in, geo, t, lo, hi);
   const int n = static_cast<int>(hi - lo);
   if (n == 0) return;
-  s.gather(in, geo, lo, hi);
-  const int C = geo.channels;
+  const int C = CC > 0 ? CC : geo.channels;
   const int K = kGradFixed + C;
   const TileBox box = tile_box(geo, t);
   const int npix = box.w * box.h;
+  const int nb = (npix + kLanes - 1) / kLanes;
   const LF zero{};
   const LI izero{};
+
+  // Entries each block walks: [0, max of its pixels' `last`).
+  s.block_kmax.assign(nb, 0);
+  int kmax = 0;
+  for (int b = 0; b < nb; ++b) {
+    int km = 0;
+    for (int q = b * kLanes; q < std::min(npix, (b + 1) * kLanes); ++q) {
+      const int64_t p = static_cast<int64_t>(box.y0 + q / box.w) * geo.width + (box.x0 + q % box.w);
+      km = std::max(km, std::min(std::max(static_cast<int>(bw.last[p]), 0), n));
+    }
+    s.block_kmax[b] = km;
+    kmax = std::max(kmax, km);
+  }
+  if (kmax == 0) return;  // no entry contributes to any pixel: all slots stay 0
+  s.reserve(kmax, C, box.h);
+  s.gather(in, geo, lo, 0, kmax);
+
+  // Per-block lists of entries (increasing), as offsets into s.list: count, then fill.
+  const int32_t* bkmax = s.block_kmax.data();
+  int* span_lo = s.span_lo.data();
+  int* span_hi = s.span_hi.data();
+  s.count.assign(nb + 1, 0);
+  int32_t* start = s.count.data();
+  for (int k = 0; k < kmax; ++k) {
+    int r0, r1;
+    if (!reach_spans<kLanes == 8>(s.entries[k], box, r0, r1, span_lo, span_hi)) continue;
+    for_each_row_block<kLanes>(r0, r1, span_lo, span_hi, box.w, [&](int b) { start[b + 1] += k < bkmax[b]; });
+  }
+  for (int b = 0; b < nb; ++b) start[b + 1] += start[b];
+  s.cursor.assign(start, start + nb);
+  if (s.list.size() < static_cast<size_t>(start[nb])) s.list.resize(start[nb]);
+  int32_t* lists = s.list.data();
+  int32_t* cursor = s.cursor.data();
+  for (int k = 0; k < kmax; ++k) {
+    int r0, r1;
+    if (!reach_spans<kLanes == 8>(s.entries[k], box, r0, r1, span_lo, span_hi)) continue;
+    for_each_row_block<kLanes>(r0, r1, span_lo, span_hi, box.w, [&](int b) {
+      if (k < bkmax[b]) lists[cursor[b]++] = k;
+    });
+  }
+
   LF* behind = Scratch::lanes<LF>(s.lane, static_cast<size_t>(3) * C);  // per channel
   LF* prev_feat = behind + C;  // feature of the kept Gaussian behind
   LF* gacc = prev_feat + C;    // dL/daccum of the lanes' pixels
-  LF* sums = Scratch::lanes<LF>(s.entry_lanes, static_cast<size_t>(n) * K);  // [entry][field]
+  LF behind_reg[CC > 0 ? CC : 1], prev_feat_reg[CC > 0 ? CC : 1], gacc_reg[CC > 0 ? CC : 1];
+  if constexpr (CC > 0) {
+    behind = behind_reg;
+    prev_feat = prev_feat_reg;
+    gacc = gacc_reg;
+  }
+  LF* sums = Scratch::lanes<LF>(s.entry_lanes, static_cast<size_t>(kmax) * K);  // [entry][field]
 
-  for (int q0 = 0; q0 < npix; q0 += kLanes) {
+  for (int blk = 0; blk < nb; ++blk) {
+    if (start[blk + 1] == start[blk]) continue;  // no entry reaches it: it adds nothing
     LF px, py;
     LI valid;
     int64_t pix[kLanes];
-    block_pixels(box, q0, px, py, valid, pix, geo);
+    block_pixels(box, blk * kLanes, px, py, valid, pix, geo);
     float tf[kLanes], ga[kLanes], gc[kLanes];
     int32_t nl[kLanes];
-    int kmax = 0;
     for (int l = 0; l < kLanes; ++l) {
       const bool ok = pix[l] >= 0;
       nl[l] = ok ? std::min(std::max(static_cast<int>(bw.last[pix[l]]), 0), n) : 0;
       tf[l] = ok ? bw.final_T[pix[l]] : 1.0f;
       ga[l] = ok ? bw.g_alpha[pix[l]] : 0.0f;
-      kmax = std::max(kmax, static_cast<int>(nl[l]));
     }
     for (int ch = 0; ch < C; ++ch) {
       for (int l = 0; l < kLanes; ++l) gc[l] = pix[l] >= 0 ? bw.g_accum[pix[l] * C + ch] : 0.0f;
@@ -359,43 +797,59 @@ RM_INLINE void backward_tile_impl(const Inputs& in, const Geometry& geo, int t, 
     const LF g_alpha = load_lanes<LF>(ga);
     LF T = T_final;
     LF prev_alpha = zero;
-    for (int k = kmax - 1; k >= 0; --k) {
-      const LF ca = zero + s.a[k], cb = zero + s.b[k], cc = zero + s.c[k], o = zero + s.op[k];
-      const LF dx = s.x[k] - px;
-      const LF dy = s.y[k] - py;
-      const LF power = rm_power(ca, cb, cc, dx, dy);
-      const LF g = rm_exp(power);
-      const LF alpha_k = rm_alpha(o, g, power);
-      const LI use = ((izero + k) < nlast) & (alpha_k > 0.0f);
-      if (!any_lane(use)) continue;
-      const LF alpha = use ? alpha_k : 0.0f;
-      T = rm_T_before(T, alpha);  // unchanged (T / 1) where not used
-      const LF w = alpha * T;
-      const LF pa = prev_alpha;
-      prev_alpha = use ? alpha : prev_alpha;
-      LF* ek = sums + static_cast<size_t>(k) * K;
-      const float* f = &s.feat[static_cast<size_t>(k) * C];
-      LF dot = zero;
-      for (int ch = 0; ch < C; ++ch) {
-        const LF nb = rm_behind(behind[ch], pa, prev_feat[ch]);
-        behind[ch] = use ? nb : behind[ch];
-        dot += use ? (f[ch] - nb) * gacc[ch] : 0.0f;
-        prev_feat[ch] = use ? zero + f[ch] : prev_feat[ch];
-        ek[kGradFixed + ch] += use ? w * gacc[ch] : 0.0f;
+    // Back to front over the block's entries, in batches: exp and alpha of
+    // a batch first (independent of each other), then the recurrence.
+    constexpr int kBatch = 8;
+    LF gs[kBatch], alphas[kBatch];
+    for (int i1 = start[blk + 1]; i1 > start[blk]; i1 -= kBatch) {
+      const int nbatch = std::min(kBatch, i1 - start[blk]);
+      for (int j = 0; j < nbatch; ++j) {
+        const Splat& e = s.entries[lists[i1 - 1 - j]];
+        const LF dx = e.x - px;
+        const LF dy = e.y - py;
+        const LF power = rm_power(splat<LF>(e.a), splat<LF>(e.b), splat<LF>(e.c), dx, dy);
+        gs[j] = rm_exp(power);
+        alphas[j] = rm_alpha(splat<LF>(e.op), gs[j], power);
       }
-      const LF dl_dalpha = rm_dl_dalpha(T, dot, T_final, g_alpha, alpha);
-      const RmGaussGrad<LF> gg = rm_gaussian_grad(ca, cb, cc, dx, dy, o, g, dl_dalpha);
-      ek[0] += use ? gg.mean_x : 0.0f;
-      ek[1] += use ? gg.mean_y : 0.0f;
-      ek[2] += use ? gg.conic_a : 0.0f;
-      ek[3] += use ? gg.conic_b : 0.0f;
-      ek[4] += use ? gg.conic_c : 0.0f;
-      ek[5] += use ? gg.opacity : 0.0f;
+      for (int j = 0; j < nbatch; ++j) {
+        const int k = lists[i1 - 1 - j];
+        const LI use = ((izero + k) < nlast) & (alphas[j] > 0.0f);
+        if (!any_lane(use)) continue;
+        const Splat& e = s.entries[k];
+        const LF ca = splat<LF>(e.a), cb = splat<LF>(e.b), cc = splat<LF>(e.c), o = splat<LF>(e.op);
+        const LF dx = e.x - px;
+        const LF dy = e.y - py;
+        const LF g = gs[j];
+        const LF alpha_k = alphas[j];
+        const LF alpha = use ? alpha_k : 0.0f;
+        T = rm_T_before(T, alpha);  // unchanged (T / 1) where not used
+        const LF w = alpha * T;
+        const LF pa = prev_alpha;
+        prev_alpha = use ? alpha : prev_alpha;
+        LF* ek = sums + static_cast<size_t>(k) * K;
+        const float* f = s.template features<CC>(k, C);
+        LF dot = zero;
+        for (int ch = 0; ch < C; ++ch) {
+          const LF nbh = rm_behind(behind[ch], pa, prev_feat[ch]);
+          behind[ch] = use ? nbh : behind[ch];
+          dot += use ? (f[ch] - nbh) * gacc[ch] : 0.0f;
+          prev_feat[ch] = use ? zero + f[ch] : prev_feat[ch];
+          ek[kGradFixed + ch] += use ? w * gacc[ch] : 0.0f;
+        }
+        const LF dl_dalpha = rm_dl_dalpha(T, dot, T_final, g_alpha, alpha);
+        const RmGaussGrad<LF> gg = rm_gaussian_grad(ca, cb, cc, dx, dy, o, g, dl_dalpha);
+        ek[0] += use ? gg.mean_x : 0.0f;
+        ek[1] += use ? gg.mean_y : 0.0f;
+        ek[2] += use ? gg.conic_a : 0.0f;
+        ek[3] += use ? gg.conic_b : 0.0f;
+        ek[4] += use ? gg.conic_c : 0.0f;
+        ek[5] += use ? gg.opacity : 0.0f;
+      }
     }
   }
-  // Lane sums in a fixed order.
+  // Lane sums in a fixed order (entries from kmax on have none).
   float v[kLanes];
-  for (size_t j = 0; j < static_cast<size_t>(n) * K; ++j) {
+  for (size_t j = 0; j < static_cast<size_t>(kmax) * K; ++j) {
     store_lanes(v, sums[j]);
     float total = 0.0f;
     for (int l = 0; l < kLanes; ++l) total += v[l];
@@ -409,7 +863,9 @@ RM_INLINE void backward_tile_impl(const Inputs& in, const Geometry& geo, int t, 
 // AVX2 (8 lanes), picked at run time from the CPU. MLX3D_RASTER_ISA=baseline
 // in the environment forces the baseline variant (read at each evaluation).
 // Forward outputs are identical across variants; backward lane sums group
-// pixels differently, so gradients may differ in the last bits.
+// pixels differently, so gradients may differ in the last bits. Each variant
+// is also instantiated for 1 to 4 channels (features held in registers) and
+// for any number of channels; these give identical results.
 using ForwardTileFn = void (*)(const Inputs&, const Geometry&, int, Scratch&, const ForwardOut&);
 using BackwardTileFn = void (*)(const Inputs&, const Geometry&, int, Scratch&, const BackwardIn&, float*);
 
@@ -421,21 +877,25 @@ using BaseF = float;
 using BaseI = int32_t;
 #endif
 
+template <int CC>
 void forward_tile_base(const Inputs& in, const Geometry& geo, int t, Scratch& s, const ForwardOut& out) {
-  forward_tile_impl<BaseF, BaseI>(in, geo, t, s, out);
+  forward_tile_impl<BaseF, BaseI, CC>(in, geo, t, s, out);
 }
+template <int CC>
 void backward_tile_base(const Inputs& in, const Geometry& geo, int t, Scratch& s, const BackwardIn& bw, float* eg) {
-  backward_tile_impl<BaseF, BaseI>(in, geo, t, s, bw, eg);
+  backward_tile_impl<BaseF, BaseI, CC>(in, geo, t, s, bw, eg);
 }
 
 #if defined(MLX3D_RASTER_AVX2)
+template <int CC>
 __attribute__((target("avx2"))) void forward_tile_avx2(const Inputs& in, const Geometry& geo, int t, Scratch& s,
                                                        const ForwardOut& out) {
-  forward_tile_impl<LaneF8, LaneI8>(in, geo, t, s, out);
+  forward_tile_impl<LaneF8, LaneI8, CC>(in, geo, t, s, out);
 }
+template <int CC>
 __attribute__((target("avx2"))) void backward_tile_avx2(const Inputs& in, const Geometry& geo, int t, Scratch& s,
                                                         const BackwardIn& bw, float* eg) {
-  backward_tile_impl<LaneF8, LaneI8>(in, geo, t, s, bw, eg);
+  backward_tile_impl<LaneF8, LaneI8, CC>(in, geo, t, s, bw, eg);
 }
 #endif
 
@@ -456,18 +916,32 @@ int simd_lanes() {
   return use_avx2() ? 8 : lanes_of<BaseF>();
 }
 
-ForwardTileFn pick_forward() {
-#if defined(MLX3D_RASTER_AVX2)
-  if (use_avx2()) return forward_tile_avx2;
-#endif
-  return forward_tile_base;
+// fns[0]: any channel count; fns[c]: c channels.
+template <class Fn>
+Fn pick_channels(const Fn (&fns)[kMaxFixedChannels + 1], int channels) {
+  return channels >= 1 && channels <= kMaxFixedChannels ? fns[channels] : fns[0];
 }
 
-BackwardTileFn pick_backward() {
+ForwardTileFn pick_forward(int channels) {
 #if defined(MLX3D_RASTER_AVX2)
-  if (use_avx2()) return backward_tile_avx2;
+  static const ForwardTileFn avx2[] = {forward_tile_avx2<0>, forward_tile_avx2<1>, forward_tile_avx2<2>,
+                                       forward_tile_avx2<3>, forward_tile_avx2<4>};
+  if (use_avx2()) return pick_channels(avx2, channels);
 #endif
-  return backward_tile_base;
+  static const ForwardTileFn base[] = {forward_tile_base<0>, forward_tile_base<1>, forward_tile_base<2>,
+                                       forward_tile_base<3>, forward_tile_base<4>};
+  return pick_channels(base, channels);
+}
+
+BackwardTileFn pick_backward(int channels) {
+#if defined(MLX3D_RASTER_AVX2)
+  static const BackwardTileFn avx2[] = {backward_tile_avx2<0>, backward_tile_avx2<1>, backward_tile_avx2<2>,
+                                        backward_tile_avx2<3>, backward_tile_avx2<4>};
+  if (use_avx2()) return pick_channels(avx2, channels);
+#endif
+  static const BackwardTileFn base[] = {backward_tile_base<0>, backward_tile_base<1>, backward_tile_base<2>,
+                                        backward_tile_base<3>, backward_tile_base<4>};
+  return pick_channels(base, channels);
 }
 
 int resolve_threads(int num_threads, int work_items) {
@@ -475,13 +949,13 @@ int resolve_threads(int num_threads, int work_items) {
   return std::max(1, std::min(threads, work_items));
 }
 
-// Runs fn(tile, scratch) for tiles [t0, t1) on `threads` threads, taking tiles
-// from a shared counter.
+// Runs fn(item, thread id) for items [t0, t1) on `threads` threads, taking
+// items from a shared counter.
 template <typename Fn>
-void parallel_tiles(int t0, int t1, int threads, std::vector<Scratch>& scratch, Fn&& fn) {
+void parallel_items(int t0, int t1, int threads, Fn&& fn) {
   std::atomic<int> next(t0);
   auto worker = [&](int id) {
-    for (int t = next.fetch_add(1); t < t1; t = next.fetch_add(1)) fn(t, scratch[id]);
+    for (int t = next.fetch_add(1); t < t1; t = next.fetch_add(1)) fn(t, id);
   };
   threads = std::max(1, std::min(threads, t1 - t0));
   std::vector<std::thread> pool;
@@ -491,13 +965,35 @@ void parallel_tiles(int t0, int t1, int threads, std::vector<Scratch>& scratch, 
   for (auto& th : pool) th.join();
 }
 
+// Runs fn(tile, scratch) for tiles [t0, t1) on `threads` threads.
+template <typename Fn>
+void parallel_tiles(int t0, int t1, int threads, std::vector<Scratch>& scratch, Fn&& fn) {
+  parallel_items(t0, t1, threads, [&](int t, int id) { fn(t, scratch[id]); });
+}
+
+// The Splat records of all Gaussians (with reach bounds unless culling is off).
+std::vector<Splat> make_splats(const Inputs& in, const Geometry& geo, int threads) {
+  const int64_t n = geo.num_gaussians;
+  std::vector<Splat> splats(static_cast<size_t>(n));
+  // Pixel centres are exact floats (as the bounds assume) up to 2^23.
+  const bool cull = culling_enabled() && geo.width <= (1 << 22) && geo.height <= (1 << 22);
+  constexpr int64_t kBlock = 4096;
+  const int blocks = static_cast<int>((n + kBlock - 1) / kBlock);
+  parallel_items(0, blocks, threads, [&](int blk, int) {
+    for (int64_t g = blk * kBlock; g < std::min(n, (blk + 1) * kBlock); ++g) make_splat(in, geo, g, cull, splats[g]);
+  });
+  return splats;
+}
+
 void run_forward(Inputs in, const Geometry& geo, int num_threads, const ForwardOut& out) {
   const std::vector<int64_t> ranges = sanitise_offsets(in.offsets, geo);
   in.ranges = ranges.data();
   const int tiles = geo.num_tiles();
   const int threads = resolve_threads(num_threads, tiles);
+  const std::vector<Splat> splats = make_splats(in, geo, threads);
+  in.splats = splats.data();
   std::vector<Scratch> scratch(threads);
-  const ForwardTileFn forward_tile = pick_forward();
+  const ForwardTileFn forward_tile = pick_forward(geo.channels);
   parallel_tiles(0, tiles, threads, scratch,
                  [&](int t, Scratch& s) { forward_tile(in, geo, t, s, out); });
 }
@@ -522,8 +1018,10 @@ void run_backward(Inputs in, const Geometry& geo, int num_threads, const Backwar
   const std::vector<int64_t> ranges = sanitise_offsets(in.offsets, geo);
   in.ranges = ranges.data();
   const int threads = resolve_threads(num_threads, tiles);
+  const std::vector<Splat> splats = make_splats(in, geo, threads);
+  in.splats = splats.data();
   std::vector<Scratch> scratch(threads);
-  const BackwardTileFn backward_tile = pick_backward();
+  const BackwardTileFn backward_tile = pick_backward(C);
   // Chunks of consecutive tiles holding at most ~4M slot floats (or one tile).
   const int64_t budget = std::max<int64_t>(1, (int64_t(1) << 22) / K);
   std::vector<float> entry_grad;

@@ -60,12 +60,20 @@ def _camera_arrays(camera):
     return view[:3, :3], view[:3, 3]
 
 
-def _finish(camera, means2d, cov2d, depths, valid, blur, antialias) -> Projection:
-    """Blur, invert and size the 2D covariances (N,2,2); cull; build the result."""
-    a, b, c = cov2d[:, 0, 0], cov2d[:, 0, 1], cov2d[:, 1, 1]
-    det_orig = a * c - b * b
-    a, c = a + blur, c + blur
-    det = a * c - b * b
+def _finish(camera, means2d, cov2d, depths, valid, blur, antialias, det_orig=None) -> Projection:
+    """Blur, invert and size the 2D covariances ((N,) arrays a, b, c of [[a, b], [b, c]]); cull; build the result.
+
+    det_orig: the determinant of the unblurred covariance when the caller has it in a more
+    accurate form than a·c - b² (then the blurred one is det_orig + blur·(a + c) + blur²).
+    """
+    a, b, c = cov2d
+    if det_orig is None:
+        det_orig = a * c - b * b
+        a, c = a + blur, c + blur
+        det = a * c - b * b
+    else:
+        det = det_orig + blur * (a + c) + blur * blur
+        a, c = a + blur, c + blur
     valid = valid & (det > 0) & (a > 0) & mx.isfinite(det)  # positive definite
     safe_det = mx.where(valid, det, 1.0)
     if antialias:
@@ -98,14 +106,28 @@ def project_gaussians(camera, means, quats, scales, blur: float = 0.3, antialias
     # clamp x/z and y/z to the frustum widened by 30% of the half field of view
     tx = zs * mx.clip(x / zs, -(cx / fx + 0.3 * tan_x), (camera.width - cx) / fx + 0.3 * tan_x)
     ty = zs * mx.clip(y / zs, -(cy / fy + 0.3 * tan_y), (camera.height - cy) / fy + 0.3 * tan_y)
-    zero = mx.zeros_like(zs)
-    jac = mx.stack(
-        [mx.stack([fx / zs, zero, -fx * tx / (zs * zs)], -1), mx.stack([zero, fy / zs, -fy * ty / (zs * zs)], -1)], axis=-2
-    )  # (N,2,3)
-    cov_cam = rot @ quat_scale_to_cov3d(quats, scales) @ rot.T
-    cov2d = jac @ cov_cam @ mx.swapaxes(jac, -1, -2)
+    # Σ2D = J Σcam Jᵀ with Σcam = L Lᵀ, L = rot · R(q) · diag(s) (the Gaussian's axes in camera
+    # space) and the Jacobian J = [[fx/z, 0, -fx tx/z²], [0, fy/z, -fy ty/z²]]: Σ2D = T Tᵀ with
+    # T = J L. Written out per entry on (N,) arrays, as batched 3x3 matmuls cost one small GEMM
+    # call per Gaussian; T Tᵀ is also positive semi-definite by construction.
+    r = quaternion_to_matrix(quats)  # (N,3,3)
+    rs = [[r[:, i, k] * scales[:, k] for k in range(3)] for i in range(3)]
+    axes = [[rot[i, 0] * rs[0][k] + rot[i, 1] * rs[1][k] + rot[i, 2] * rs[2][k] for k in range(3)] for i in range(3)]
+    j00, j02 = fx / zs, -fx * tx / (zs * zs)
+    j11, j12 = fy / zs, -fy * ty / (zs * zs)
+    t0 = [j00 * axes[0][k] + j02 * axes[2][k] for k in range(3)]
+    t1 = [j11 * axes[1][k] + j12 * axes[2][k] for k in range(3)]
+    cov2d = (
+        t0[0] * t0[0] + t0[1] * t0[1] + t0[2] * t0[2],
+        t0[0] * t1[0] + t0[1] * t1[1] + t0[2] * t1[2],
+        t1[0] * t1[0] + t1[1] * t1[1] + t1[2] * t1[2],
+    )
+    # det(T Tᵀ) as the sum of the squared 2x2 minors of T (Cauchy-Binet): never negative, and
+    # exactly 0 for a Gaussian flat in the view direction (T of rank 1), which is then culled.
+    minors = [t0[i] * t1[j] - t0[j] * t1[i] for i, j in ((0, 1), (0, 2), (1, 2))]
+    det_orig = minors[0] * minors[0] + minors[1] * minors[1] + minors[2] * minors[2]
     means2d = mx.stack([fx * x / zs + cx, fy * y / zs + cy], axis=-1)
-    return _finish(camera, means2d, cov2d, z, valid, blur, antialias)
+    return _finish(camera, means2d, cov2d, z, valid, blur, antialias, det_orig)
 
 
 def project_gaussians_ut(camera, means, quats, scales, blur: float = 0.3, antialias: bool = False) -> Projection:
@@ -126,4 +148,4 @@ def project_gaussians_ut(camera, means, quats, scales, blur: float = 0.3, antial
     centre = camera.camera_to_pixels(safe_p)[0]  # (N,2)
     spread = camera.camera_to_pixels(safe_sigma)[0] - centre[:, None, :]  # (N,6,2)
     cov2d = (mx.swapaxes(spread, -1, -2) @ spread) / 6.0
-    return _finish(camera, centre, cov2d, z, valid, blur, antialias)
+    return _finish(camera, centre, (cov2d[:, 0, 0], cov2d[:, 0, 1], cov2d[:, 1, 1]), z, valid, blur, antialias)

@@ -12,6 +12,12 @@ Both passes are threaded over tiles. The backward pass sums gradients per tile
 entry, then per Gaussian in flatten_ids order, so its results are bitwise
 identical for any thread count. Threads: :func:`set_num_threads` (default:
 all cores, or the ``MLX3D_NUM_THREADS`` environment variable).
+
+Inside a tile, each block of 8 (or 4) pixels only evaluates the Gaussians that
+can reach one of its pixels with alpha >= 1/255: a bound on each Gaussian's
+footprint, with margins that cover float32 rounding, so every pair it leaves
+out is one the rules skip anyway and the results are bitwise those of
+evaluating every pair (``MLX3D_RASTER_CULL=0`` turns this off, for testing).
 """
 
 from __future__ import annotations
