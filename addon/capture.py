@@ -1,4 +1,4 @@
-"""Capture a Blender scene as a training dataset: rendered views, their cameras and initial points.
+"""Capture a Blender scene as a training dataset: rendered views, their cameras, initial points and the ground-truth mesh.
 
 ``capture_dataset(out_dir, ...)`` renders the chosen mesh objects with Cycles
 from an orbit of cameras around their bounding sphere (or from the scene's own
@@ -11,6 +11,12 @@ cameras) and writes, under ``out_dir``::
     sparse/0/images.txt          OpenCV axes) of the same cameras and points
     sparse/0/points3D.txt
     points3d.ply                 the initial points: x y z (float) red green blue (uchar)
+    mesh.ply                     the captured objects' triangles in world space, the
+                                 ground-truth geometry (e.g. to score extracted meshes):
+                                 each object's own vertices and faces, modifiers applied,
+                                 wound like Blender's normals (also under a mirroring
+                                 transform); x y z (float), red green blue (uchar, sRGB,
+                                 the mean of the vertex's corner colours), face lists
 
 Conventions (see README "Conventions" and ``mlx3d.cameras``):
 
@@ -28,7 +34,7 @@ Conventions (see README "Conventions" and ``mlx3d.cameras``):
 - Frames ``i % test_every == 0`` are held out: ``test_filenames`` and
   ``val_filenames`` (nerfstudio asks for the split it evaluates on), the rest
   are ``train_filenames``.
-- Point colours, sRGB 8-bit like the images: for each triangle's material,
+- Point (and mesh vertex) colours, sRGB 8-bit like the images: for each triangle's material,
   the colour input (``Base Color`` or ``Color``) of the shader node linked to
   the material output: its value when unlinked, the mesh's colour attribute
   when a Color Attribute or Attribute node feeds it (interpolated over the
@@ -61,6 +67,8 @@ from mathutils import Matrix
 
 from mlx3d.cameras import Camera
 from mlx3d.io import atomic_write
+from mlx3d.io.mesh_ply import write_mesh_ply
+from mlx3d.meshing import SurfaceMesh
 from mlx3d.transforms import matrix_to_quaternion
 
 from .camera import camera_from_blender
@@ -72,6 +80,7 @@ TEMP_CAMERA_NAME = "MLX3D capture camera"
 IMAGE_DIR = "images"
 COLMAP_DIR = os.path.join("sparse", "0")
 PLY_NAME = "points3d.ply"
+MESH_NAME = "mesh.ply"
 
 
 class CaptureError(ValueError):
@@ -142,7 +151,8 @@ class _Surfaces:
     """World-space triangles of the objects, with how to colour points on them."""
 
     def __init__(self, objects, depsgraph):
-        tris, colour_parts, vertex_parts = [], [], []
+        tris, colour_parts, vertex_parts, face_parts = [], [], [], []
+        offset = 0
         for obj in objects:
             obj_eval = obj.evaluated_get(depsgraph)
             mesh = obj_eval.to_mesh()
@@ -154,6 +164,7 @@ class _Surfaces:
                 m = np.array(obj_eval.matrix_world, dtype=np.float64)
                 world = co.reshape(-1, 3) @ m[:3, :3].T + m[:3, 3]
                 vertex_parts.append(world)
+                base, offset = offset, offset + n_v
                 if n_t == 0:
                     continue
                 verts = np.empty(n_t * 3, dtype=np.int64)
@@ -163,11 +174,15 @@ class _Surfaces:
                 mat_idx = np.empty(n_t, dtype=np.int64)
                 mesh.loop_triangles.foreach_get("material_index", mat_idx)
                 verts, loops = verts.reshape(-1, 3), loops.reshape(-1, 3)
+                if np.linalg.det(m[:3, :3]) < 0:  # a mirroring transform turns the winding: keep the faces' normals outward
+                    verts, loops = verts[:, ::-1], loops[:, ::-1]
                 tris.append(world[verts])
+                face_parts.append(verts + base)
                 colour_parts.append(self._triangle_colours(obj_eval, mesh, verts, loops, mat_idx))
             finally:
                 obj_eval.to_mesh_clear()
         self.vertices = np.concatenate(vertex_parts) if vertex_parts else np.zeros((0, 3))
+        self.faces = np.concatenate(face_parts) if face_parts else np.zeros((0, 3), dtype=np.int64)  # (T, 3) into vertices
         self.triangles = np.concatenate(tris) if tris else np.zeros((0, 3, 3))  # (T, 3 corners, xyz)
         self.corner_colours = np.concatenate(colour_parts) if colour_parts else np.zeros((0, 3, 3))  # linear
 
@@ -187,6 +202,16 @@ class _Surfaces:
             else:
                 out[rows] = np.asarray(rgb, dtype=np.float64)
         return out
+
+    def mesh(self) -> SurfaceMesh:
+        """The triangles as one indexed mesh: vertices used by a face, with their corners' mean colour (sRGB)."""
+        used, faces = np.unique(self.faces, return_inverse=True)
+        faces = faces.reshape(-1, 3)
+        colour_sum = np.zeros((len(used), 3))
+        np.add.at(colour_sum, faces.ravel(), self.corner_colours.reshape(-1, 3))
+        corners = np.bincount(faces.ravel(), minlength=len(used))[:, None]
+        colours = linear_to_srgb(colour_sum / corners)
+        return SurfaceMesh(self.vertices[used].astype(np.float32), faces.astype(np.int32), colours.astype(np.float32))
 
     @property
     def areas(self) -> np.ndarray:
@@ -373,6 +398,7 @@ class CaptureSession:
 
         self.out_dir = _check_folder(out_dir)
         self.points, self.colours = surfaces.sample(self.num_points, self.seed)
+        self.mesh = surfaces.mesh()
         if self.scene.world is None and not any(o.type == "LIGHT" and not o.hide_render for o in self.scene.objects):
             self.notes.append("the scene has no world and no lights: surfaces that do not emit light render black")
 
@@ -510,6 +536,7 @@ class CaptureSession:
         train = [p for p in names if p not in set(test)]
         info.update(train_filenames=train, test_filenames=test, num_points=len(self.points))
         self._write_points()
+        write_mesh_ply(os.path.join(self.out_dir, MESH_NAME), self.mesh.vertices, self.mesh.faces, self.mesh.colors)
         self._write_colmap()
         info.update(self._write_transforms(names, train, test))
         info["seconds"] = time.perf_counter() - self.t0

@@ -15,6 +15,7 @@ import sys
 import bpy
 
 from mlx3d.errors import Mlx3dError
+from mlx3d.io.mesh_ply import write_mesh_ply
 
 from . import capture, demo, train, workflows
 
@@ -78,6 +79,24 @@ def cmd_compact(args) -> None:
     obj = _import(args.input, args)
     _print(workflows.compact_object(obj, max_gaussians=args.max_gaussians, min_opacity=args.min_opacity, sh_degree=args.target_sh_degree))
     _print(workflows.export_splat_file(args.out, [obj], axis=args.axis)[1])
+
+
+def cmd_extract_mesh(args) -> None:
+    from mlx3d.progress import ProgressLine
+
+    _reset_scene()
+    splats = _import(args.input, args)
+    job = workflows.MeshExtraction(splats, resolution=args.resolution, min_opacity=args.min_opacity, max_points=args.max_points, trim=args.trim)
+    try:
+        job.compute(ProgressLine("extract mesh"))
+    except KeyboardInterrupt:
+        print("blender_splat extract-mesh: cancelled; nothing written", file=sys.stderr)
+        raise SystemExit(130) from None
+    _, messages = job.add_object()
+    _print(messages)
+    write_mesh_ply(args.out, job.mesh.vertices, job.mesh.faces, job.mesh.colors)  # the object's frame: the file's
+    print(f"wrote {args.out}")
+    _save_blend(args)
 
 
 def cmd_render(args) -> None:
@@ -167,6 +186,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--stat-std", type=float, default=10.5)
     p.add_argument("--radius", type=float, default=None)
     p.add_argument("--min-neighbours", type=int, default=None)
+
+    p = add("extract-mesh", cmd_extract_mesh, "Extract a triangle mesh of the splats' surface and write it as a PLY (in the file's frame).")
+    p.add_argument("input", metavar="IN.ply")
+    p.add_argument("--out", required=True, metavar="MESH.ply")
+    p.add_argument("--resolution", type=int, default=128, help="voxels along the longest side of the grid (default 128)")
+    p.add_argument("--min-opacity", type=float, default=0.01, help="leave out splats less opaque than this (default 0.01)")
+    p.add_argument("--max-points", type=int, default=200000, help="surface samples used at most, 0 for all (default 200000)")
+    p.add_argument("--trim", type=float, default=None, help=f"remove surface farther than this many voxels from any splat, 0 for off (default {workflows.DEFAULT_TRIM:g})")
+    p.add_argument("--save-blend", metavar="OUT.blend", help="also save the scene with the splat object and the mesh object")
 
     p = add("render", cmd_render, "Render the splat objects of a .blend from its scene camera to a PNG.")
     p.add_argument("--blend", required=True, metavar="IN.blend")

@@ -558,6 +558,104 @@ class MLX3D_OT_train(_ModalWork, bpy.types.Operator):
             self._stop(context)
 
 
+class MLX3D_OT_extract_mesh(_ModalWork, bpy.types.Operator):
+    """Extract a triangle mesh of the active splat object's surface (Poisson reconstruction from the splats as surfels), coloured by the splats, as a child of the splat object. Esc cancels and adds nothing"""
+
+    bl_idname = "mlx3d.extract_mesh"
+    bl_label = "Extract Mesh"
+    bl_options = {"REGISTER", "UNDO"}
+
+    resolution: IntProperty(name="Resolution", default=128, min=8, max=512, description="Voxels along the longest side of the grid (memory and time grow with its cube)")
+    min_opacity: FloatProperty(name="Min opacity", default=0.01, min=0.0, max=1.0, description="Leave out splats less opaque than this")
+    max_points: IntProperty(name="Max points", default=200000, min=0, description="Use at most this many splats as surface samples, the most important first (0: all)")
+    trim: FloatProperty(name="Trim", default=workflows.DEFAULT_TRIM, min=0.0, description="Remove surface farther than this many voxels from any splat (0: off)")
+
+    @classmethod
+    def poll(cls, context):
+        if is_splat_object(context.active_object):
+            return True
+        cls.poll_message_set("the active object is not a splat object")
+        return False
+
+    def _job(self, context):
+        return workflows.MeshExtraction(context.active_object, resolution=self.resolution, min_opacity=self.min_opacity,
+                                        max_points=self.max_points, trim=self.trim)
+
+    def _select(self, context, obj):
+        context.view_layer.update()
+        for other in context.view_layer.objects:
+            if other is not None and other.select_get():
+                other.select_set(False)
+        if obj.name in context.view_layer.objects:
+            obj.select_set(True)
+            context.view_layer.objects.active = obj
+
+    def _add(self, context, job):
+        try:
+            obj, messages = job.add_object()
+        except workflows.ExtractionCancelled as exc:
+            self.report({"INFO"}, f"{exc}; nothing was added")
+            return {"CANCELLED"}
+        except (ValueError, OSError, RuntimeError, MemoryError) as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        self._select(context, obj)
+        _report_all(self, messages)
+        return {"FINISHED"}
+
+    def execute(self, context):
+        if context.mode != "OBJECT":
+            bpy.ops.object.mode_set(mode="OBJECT")
+        try:
+            job = self._job(context)
+            with _Progress(context) as progress:
+                job.compute(progress)
+        except (ValueError, OSError, RuntimeError, MemoryError) as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        return self._add(context, job)
+
+    def invoke(self, context, event):
+        if context.window is None or bpy.app.background:  # no event loop: extract now
+            return self.execute(context)
+        if context.mode != "OBJECT":
+            bpy.ops.object.mode_set(mode="OBJECT")
+        try:
+            self._session = self._job(context)
+        except (ValueError, OSError, RuntimeError, MemoryError) as exc:
+            self._session = None
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        self._session.start()
+        return self._start_modal(context, 100, f"Extracting mesh from '{self._session.source_name}' (Esc to cancel)")
+
+    def modal(self, context, event):
+        job = self._session
+        if job is None:
+            return {"CANCELLED"}
+        if event.type == "ESC" and event.value == "PRESS":
+            job.cancel()  # the worker stops at its next progress report and its result is dropped
+            self._stop(context)
+            self.report({"INFO"}, f"mesh extraction from '{job.source_name}' cancelled; nothing was added")
+            return {"CANCELLED"}
+        if event.type != "TIMER":
+            return {"PASS_THROUGH"} if event.type in _VIEW_EVENTS or event.type.startswith("NDOF") else {"RUNNING_MODAL"}
+        if job.running:
+            done, total = job.progress
+            percent = int(100 * done / max(total, 1))
+            context.window_manager.progress_update(percent)
+            self._header(f"Extracting mesh from '{job.source_name}': {percent}% (Esc to cancel)")
+            return {"RUNNING_MODAL"}
+        self._stop(context)
+        return self._add(context, job)
+
+    def cancel(self, context):
+        # Blender ends the operator (a file is loaded, the window closes): stop the worker, add nothing.
+        if self._session is not None:
+            self._session.cancel()
+            self._stop(context)
+
+
 class MLX3D_FH_gaussian_splat_ply(bpy.types.FileHandler):
     """Drag and drop .ply files onto the 3D viewport to import them as splats"""
 
@@ -591,5 +689,6 @@ CLASSES = (
     MLX3D_OT_render,
     MLX3D_OT_capture_dataset,
     MLX3D_OT_train,
+    MLX3D_OT_extract_mesh,
     MLX3D_FH_gaussian_splat_ply,
 )

@@ -22,6 +22,10 @@ class MLX3D_PG_settings(bpy.types.PropertyGroup):
     compact_max: IntProperty(name="Max splats", default=0, min=0, description="0: no limit")
     compact_min_opacity: FloatProperty(name="Min opacity", default=0.0, min=0.0, max=1.0)
     compact_sh: EnumProperty(name="SH degree", items=operators.KEEP_SH_ITEMS, default="KEEP")
+    mesh_resolution: IntProperty(name="Resolution", default=128, min=8, max=512, description="Voxels along the longest side of the grid")
+    mesh_min_opacity: FloatProperty(name="Min opacity", default=0.01, min=0.0, max=1.0, description="Leave out splats less opaque than this")
+    mesh_max_points: IntProperty(name="Max points", default=200000, min=0, description="Surface samples used at most (0: all)")
+    mesh_trim: FloatProperty(name="Trim", default=workflows.DEFAULT_TRIM, min=0.0, description="Remove surface farther than this many voxels from any splat (0: off)")
     render_antialias: BoolProperty(name="Antialias", default=False)
     render_background: bpy.props.FloatVectorProperty(name="Background", subtype="COLOR", size=3, min=0.0, max=1.0, default=(0.0, 0.0, 0.0))
     render_path: bpy.props.StringProperty(name="Save to", subtype="FILE_PATH", default="", options=operators.BLEND_RELATIVE_PATH)
@@ -121,6 +125,8 @@ class VIEW3D_PT_mlx3d_splats(bpy.types.Panel):
 
         _section(layout, "Compact", settings, operators.MLX3D_OT_compact, "MOD_DECIM",
                  {"max_gaussians": "compact_max", "min_opacity": "compact_min_opacity", "sh_degree": "compact_sh"})
+        _section(layout, "Surface mesh", settings, operators.MLX3D_OT_extract_mesh, "OUTLINER_OB_MESH",
+                 {"resolution": "mesh_resolution", "min_opacity": "mesh_min_opacity", "max_points": "mesh_max_points", "trim": "mesh_trim"})
         _section(layout, "Render (scene camera)", settings, operators.MLX3D_OT_render, "RENDER_STILL",
                  {"antialias": "render_antialias", "background": "render_background", "filepath": "render_path"})
 

@@ -40,10 +40,11 @@ from mlx3d.training.metrics import psnr
 
 from .splat_object import create_splat_object, replace_splats
 
-METHODS = ("vanilla", "mcmc")
+METHODS = ("vanilla", "mcmc", "2dgs")
 METHOD_ITEMS = [
     ("vanilla", "Vanilla 3DGS", "3D Gaussian Splatting with adaptive density control (clone, split, prune)"),
     ("mcmc", "3DGS-MCMC", "Relocation of dead Gaussians, growth to the cap and SGLD noise (set Max Gaussians)"),
+    ("2dgs", "2DGS surfels", "Flat Gaussians with depth and normal regularisers: the best input for Extract Mesh"),
 ]
 BACKGROUNDS = ("black", "white", "random")
 BACKGROUND_ITEMS = [
@@ -108,7 +109,7 @@ class TrainSession:
     """One training run, in steps: ``step()`` until ``done``, then ``finish()``.
 
     data: a dataset folder (or a ``transforms*.json`` path), or a loaded ``Dataset``.
-    method: ``'vanilla'`` (the only one for now); steps: total training steps
+    method: one of ``METHODS`` (see ``TrainerConfig``); steps: total training steps
     (the learning-rate and density schedules are laid out over them);
     max_gaussians: cap on the number of Gaussians (None: no cap; initial points
     beyond it are subsampled, seeded); sh_degree: SH degree of the model (the

@@ -11,6 +11,8 @@ anything in the scene or on disk is changed.
 from __future__ import annotations
 
 import os
+import threading
+import time
 import warnings
 from contextlib import contextmanager
 
@@ -19,6 +21,7 @@ import numpy as np
 
 from mlx3d.floaters import radius_outliers, statistical_outliers
 from mlx3d.io import read_splat_ply, write_splat_ply
+from mlx3d.meshing import DEFAULT_TRIM, MeshingError, SurfaceMesh, reconstruct_surface
 from mlx3d.splatting import GaussianModel, merge_splats
 
 from .camera import camera_from_blender
@@ -283,3 +286,242 @@ def _save_png(image, path: str) -> None:
         if os.path.exists(tmp):
             os.remove(tmp)
         image.filepath_raw = path
+
+
+# ------------------------------------------------------------------ surface mesh
+MESH_MATERIAL = "MLX3D Mesh"
+MESH_COLOR_ATTRIBUTE = "Color"
+
+
+class ExtractionCancelled(Exception):
+    """Raised through the meshing progress callback to stop an extraction; nothing is added to the scene."""
+
+
+def srgb_to_linear(c) -> np.ndarray:
+    """Inverse sRGB transfer function (IEC 61966-2-1) of values clipped to [0, 1]."""
+    c = np.clip(np.asarray(c, dtype=np.float64), 0.0, 1.0)
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+
+
+class MeshExtraction:
+    """One surface-mesh extraction from a splat object, in three steps:
+
+    - the constructor (main thread) checks the object, reads its splats in its
+      own (local) frame and turns them into oriented surfels
+      (``GaussianModel.surfel_points``, the only step that uses MLX); bad
+      input raises here, before the long part;
+    - ``compute(progress)`` reconstructs the surface from them
+      (``mlx3d.meshing.reconstruct_surface``, numpy only, exactly what
+      ``GaussianModel.extract_surface_mesh`` does) and touches no Blender
+      data, so it may run on a worker thread: ``start()`` runs it on one,
+      ``running`` and ``progress`` (done, total) follow it and ``cancel()``
+      stops it at its next progress report;
+    - ``add_object()`` (main thread) builds the mesh object from the result,
+      or raises the error the computation raised. Nothing is added before it.
+
+    Options as ``extract_mesh``.
+    """
+
+    def __init__(self, obj, *, resolution=128, min_opacity=0.01, max_points=200000, trim=None, camera_centres=None,
+                 name=None, collection=None, padding=0.1):
+        if obj is None or not is_splat_object(obj):
+            what = "no active object" if obj is None else f"'{obj.name}' is not a splat object"
+            raise SplatObjectError(f"{what}: choose a point cloud imported as Gaussian splats to extract a mesh from")
+        self.t0 = time.perf_counter()
+        self.source, self.source_name = obj, obj.name
+        self.name = name or f"{obj.name} mesh"
+        self.collection = collection
+        self.resolution = int(resolution)
+        self.options = dict(resolution=self.resolution, padding=float(padding), trim=DEFAULT_TRIM if trim is None else float(trim))
+        if len(obj.data.points) == 0:
+            raise MeshingError(f"'{obj.name}' holds no splats; nothing to mesh")
+        arrays, _ = read_splats(obj)
+        self.count = arrays.count
+        centres = None
+        if camera_centres is not None:  # world space -> the object's frame
+            bpy.context.view_layer.update()
+            to_local = np.linalg.inv(object_matrix(obj))
+            centres = np.asarray(camera_centres, dtype=np.float64).reshape(-1, 3) @ to_local[:3, :3].T + to_local[:3, 3]
+        self.surfels = GaussianModel.from_arrays(arrays).surfel_points(float(min_opacity), int(max_points) if max_points else None, centres)
+        if len(self.surfels[0]) == 0:
+            raise MeshingError(f"no splat of '{obj.name}' has opacity >= {min_opacity:g} (of {self.count:,}); nothing to mesh")
+        self.surface = self.mesh = None
+        self.error = None
+        self.progress = (0, 1)
+        self._cancel = threading.Event()
+        self._thread = None
+
+    # -- computation (any thread)
+    def _report(self, progress):
+        def report(done, total):
+            if self._cancel.is_set():
+                raise ExtractionCancelled(f"mesh extraction from '{self.source_name}' cancelled")
+            self.progress = (done, total)
+            if progress is not None:
+                progress(done, total)
+        return report
+
+    def compute(self, progress=None):
+        """The surface (an ``mlx3d.meshing.SurfaceMesh``, in the object's frame); raises ``MeshingError`` for bad input."""
+        surface = reconstruct_surface(*self.surfels, progress=self._report(progress), **self.options)
+        self._report(None)(1, 1)  # a cancel that came after the last report still counts
+        self.surface = surface
+        return surface
+
+    def _work(self):
+        try:
+            self.compute()
+        except BaseException as exc:  # handed to the main thread by add_object
+            self.error = exc
+
+    def start(self) -> None:
+        """Run ``compute`` on a worker thread."""
+        self._thread = threading.Thread(target=self._work, name=f"mlx3d mesh {self.source_name}", daemon=True)
+        self._thread.start()
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def cancel(self) -> None:
+        self._cancel.set()
+
+    @property
+    def cancelled(self) -> bool:
+        return self._cancel.is_set()
+
+    def wait(self, timeout=None) -> bool:
+        """Wait for the worker thread; True when it has finished."""
+        if self._thread is not None:
+            self._thread.join(timeout)
+        return not self.running
+
+    # -- result (main thread)
+    def add_object(self):
+        """The mesh object, parented to the splat object with an identity parent inverse; (object, messages)."""
+        if self.error is not None:
+            raise self.error
+        if self.cancelled:
+            raise ExtractionCancelled(f"mesh extraction from '{self.source_name}' cancelled")
+        if self.surface is None:
+            raise RuntimeError("add_object needs a finished computation (compute() or start() first)")
+        try:
+            self.source.name
+        except ReferenceError:
+            raise SplatObjectError(f"the splat object '{self.source_name}' was removed during the mesh extraction") from None
+        vertices, faces, colors = _mesh_arrays(self.surface, self.source_name)
+        self.mesh = SurfaceMesh(vertices, faces, colors)  # what the object holds
+        collection = self.collection or (self.source.users_collection[0] if self.source.users_collection else bpy.context.collection)
+        obj = new_mesh_object(self.name, vertices, faces, colors, collection=collection, parent=self.source)
+        seconds = time.perf_counter() - self.t0
+        return obj, [
+            f"extracted '{obj.name}' from '{self.source_name}' ({self.count:,} splats, resolution {self.resolution}): "
+            f"{len(vertices):,} vertices, {len(faces):,} faces in {seconds:.1f} s"
+        ]
+
+
+def _mesh_arrays(surface, source_name):
+    """Checked (vertices float32, faces int32, colours or None) of a SurfaceMesh; faces with a repeated corner are dropped."""
+    vertices = np.ascontiguousarray(surface.vertices, dtype=np.float32).reshape(-1, 3)
+    faces = np.ascontiguousarray(surface.faces, dtype=np.int64).reshape(-1, 3)
+    if len(faces) and (faces.min() < 0 or faces.max() >= len(vertices)):
+        raise MeshingError(f"the mesh of '{source_name}' has faces indexing missing vertices")
+    faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 2] != faces[:, 0])]
+    if len(faces) == 0:
+        raise MeshingError(f"no surface found in '{source_name}' (try a lower opacity threshold or a higher resolution)")
+    colors = None if surface.colors is None else np.asarray(surface.colors, dtype=np.float64).reshape(-1, 3)
+    return vertices, faces.astype(np.int32), colors
+
+
+def mesh_material():
+    """The material of extracted meshes (reused when it exists): Principled BSDF coloured by the ``Color`` attribute."""
+    mat = bpy.data.materials.get(MESH_MATERIAL)
+    if mat is not None:
+        return mat
+    mat = bpy.data.materials.new(MESH_MATERIAL)
+    if bpy.app.version < (5, 0, 0):  # 5.0+ materials always use nodes
+        mat.use_nodes = True
+    nodes, links = mat.node_tree.nodes, mat.node_tree.links
+    nodes.clear()
+    attr = nodes.new("ShaderNodeVertexColor")
+    attr.layer_name = MESH_COLOR_ATTRIBUTE
+    bsdf = nodes.new("ShaderNodeBsdfPrincipled")
+    out = nodes.new("ShaderNodeOutputMaterial")
+    links.new(attr.outputs["Color"], bsdf.inputs["Base Color"])
+    links.new(bsdf.outputs["BSDF"], out.inputs["Surface"])
+    for i, node in enumerate((attr, bsdf, out)):
+        node.location = (300 * i - 300, 0)
+    return mat
+
+
+def new_mesh_object(name, vertices, faces, colors=None, *, collection, parent=None):
+    """A mesh object from (V,3) vertices and (F,3) triangles, built with ``foreach_set``.
+
+    colors: (V,3) sRGB-encoded values in [0, 1] (as training images hold them),
+    stored linear in the FLOAT_COLOR point attribute ``Color`` that the ``MLX3D
+    Mesh`` material shows. The object sits exactly under ``parent`` (identity
+    parent inverse). Nothing is left behind if it fails.
+    """
+    vertices = np.ascontiguousarray(vertices, dtype=np.float32)
+    faces = np.ascontiguousarray(faces, dtype=np.int32)
+    mesh = bpy.data.meshes.new(name)
+    obj = None
+    try:
+        mesh.vertices.add(len(vertices))
+        mesh.vertices.foreach_set("co", vertices.ravel())
+        mesh.loops.add(faces.size)
+        mesh.loops.foreach_set("vertex_index", faces.ravel())
+        mesh.polygons.add(len(faces))
+        mesh.polygons.foreach_set("loop_start", np.arange(0, faces.size, 3, dtype=np.int32))
+        mesh.update(calc_edges=True)
+        if hasattr(mesh, "shade_smooth"):
+            mesh.shade_smooth()
+        else:  # before 4.1
+            mesh.polygons.foreach_set("use_smooth", np.ones(len(faces), dtype=bool))
+        if colors is not None:
+            rgba = np.ones((len(vertices), 4), dtype=np.float32)
+            rgba[:, :3] = srgb_to_linear(colors)
+            attr = mesh.color_attributes.new(MESH_COLOR_ATTRIBUTE, "FLOAT_COLOR", "POINT")
+            attr.data.foreach_set("color", rgba.ravel())
+            mesh.color_attributes.active_color = attr
+            if hasattr(mesh.color_attributes, "default_color_name"):
+                mesh.color_attributes.default_color_name = attr.name
+            mesh.materials.append(mesh_material())
+        obj = bpy.data.objects.new(name, mesh)
+        collection.objects.link(obj)
+        if parent is not None:
+            obj.parent = parent
+            obj.matrix_parent_inverse.identity()
+        obj.matrix_basis.identity()
+    except BaseException:
+        if obj is not None:
+            bpy.data.objects.remove(obj, do_unlink=True)
+        bpy.data.meshes.remove(mesh, do_unlink=True)
+        raise
+    return obj
+
+
+def extract_mesh(obj, *, resolution=128, min_opacity=0.01, max_points=200000, trim=None, name=None, collection=None,
+                 camera_centres=None, progress=None):
+    """A triangle mesh of the splats' surface as a new mesh object under the splat object.
+
+    The splats are read in the object's own frame and meshed by
+    ``GaussianModel.extract_surface_mesh`` (resolution: voxels along the
+    longest side of the grid; min_opacity: splats below it are left out;
+    max_points: at most this many surfels (None or 0: all); trim: voxels,
+    0 = off, None = mlx3d's default; camera_centres: (C,3) world positions,
+    e.g. of the training cameras, that the splats' normals face, else they
+    point away from the splats' centroid). The
+    object, named ``name`` (default "<splat object> mesh") and linked to
+    ``collection`` (default the splat object's), is parented to the splat
+    object with an identity parent inverse, so its world matrix is the splat
+    object's; its vertex colours are the splats' base colour. progress:
+    ``progress(done, total)``, which may raise to cancel. Returns (object,
+    messages). Bad input (not a splat object, no splats, none opaque enough)
+    raises a ``ValueError`` (``MeshingError``, ``SplatObjectError``) and adds
+    nothing.
+    """
+    job = MeshExtraction(obj, resolution=resolution, min_opacity=min_opacity, max_points=max_points, trim=trim,
+                         camera_centres=camera_centres, name=name, collection=collection)
+    job.compute(progress)
+    return job.add_object()

@@ -221,6 +221,25 @@ def cmd_train(args) -> None:
         print(f"held-out views: PSNR {report['psnr']:.2f} dB, SSIM {report['ssim']:.4f} ({len(report['views'])} views)")
 
 
+def cmd_mesh(args) -> None:
+    from .meshing import DEFAULT_TRIM
+
+    model = _load(args.model, args.nonfinite)
+    centres = None
+    if args.data:
+        from .datasets import load_dataset
+
+        centres = [frame.camera.center for frame in load_dataset(args.data).frames]
+    trim = DEFAULT_TRIM if args.trim is None else args.trim
+    with step(f"extracting a mesh at resolution {args.resolution}"):
+        mesh = model.extract_surface_mesh(
+            resolution=args.resolution, padding=args.padding, min_opacity=args.min_opacity, max_points=args.max_points,
+            orient_towards=centres, trim=trim, progress=ProgressLine("meshing"),
+        )
+    mesh.save_ply(args.out)
+    print(f"wrote {args.out}: {len(mesh.vertices):,} vertices, {len(mesh.faces):,} faces, area {mesh.area():.4g}, watertight {mesh.is_watertight()}")
+
+
 def cmd_eval(args) -> None:
     from .datasets import load_dataset
     from .splatting import GaussianModel
@@ -243,6 +262,8 @@ def cmd_demo(args) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from .training.trainer import METHODS
+
     parser = argparse.ArgumentParser(prog="mlx3d", description="3D Gaussian Splatting tools on MLX.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
@@ -289,10 +310,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sh-degree", type=int, default=None, choices=(0, 1, 2, 3), metavar="D")
     reading(p)
 
+    p = add("mesh", cmd_mesh, "Extract a triangle mesh (PLY with vertex colours) by Poisson reconstruction from the Gaussians as oriented discs.")
+    p.add_argument("model", metavar="MODEL.ply")
+    p.add_argument("--out", required=True, metavar="MESH.ply")
+    p.add_argument("--resolution", type=int, default=128, help="grid cells per side (default 128; memory grows with its cube)")
+    p.add_argument("--padding", type=float, default=0.1, help="grid margin, as a fraction of the bounding box's largest side")
+    p.add_argument("--min-opacity", type=float, default=0.01, help="ignore Gaussians below this opacity")
+    p.add_argument("--max-points", type=int, default=200_000, help="keep the N largest opaque discs (default 200000)")
+    p.add_argument("--trim", type=float, default=None, metavar="VOXELS", help="drop faces farther than this from every disc centre (0: keep all)")
+    p.add_argument("--data", metavar="DATA_DIR", help="orient normals towards this dataset's cameras (default: away from the centroid)")
+    reading(p)
+
     p = add("train", cmd_train, "Train Gaussians on a dataset (COLMAP, NeRF-synthetic or nerfstudio folder) and write a PLY.")
     p.add_argument("data", metavar="DATA_DIR")
     p.add_argument("--out", required=True, metavar="OUT.ply")
-    p.add_argument("--method", choices=("vanilla", "mcmc"), default="vanilla")
+    p.add_argument("--method", choices=METHODS, default="vanilla", help="vanilla, mcmc or 2dgs (surfels, for mesh extraction)")
     p.add_argument("--steps", type=int, default=30000)
     p.add_argument("--max-gaussians", type=int, default=None, metavar="N", help="vanilla: stop growth at N; mcmc: grow to N")
     p.add_argument("--sh-degree", type=int, choices=(0, 1, 2, 3), default=3)

@@ -35,9 +35,14 @@ def test_means_learning_rate_decays_log_linearly_with_scene_extent():
     assert trainer.learning_rates()["sh_rest"] == pytest.approx(2.5e-3 / 20)
 
 
-def test_unimplemented_methods_are_refused():
-    with pytest.raises(ValueError, match="2dgs"):
-        TrainerConfig(method="2dgs")
+def test_unknown_methods_and_bad_surfel_settings_are_refused():
+    with pytest.raises(ValueError, match="'splats'.*vanilla.*mcmc.*2dgs"):
+        TrainerConfig(method="splats")
+    with pytest.raises(ValueError, match="lambda_2d_depth_variance"):
+        TrainerConfig(method="2dgs", lambda_2d_depth_variance=-1.0)
+    with pytest.raises(ValueError, match="two_d_thickness"):
+        TrainerConfig(method="2dgs", two_d_thickness=0.0)
+    assert TrainerConfig(method="2dgs").lambda_2d_normal_consistency > 0 and TrainerConfig().lambda_2d_normal_consistency == 0
 
 
 # ------------------------------------------------------------------ Adam

@@ -8,6 +8,7 @@ README.
 """
 
 from .binning import TILE_SIZE, Bins, bin_gaussians
+from .geometry_channels import facing_normals
 from .pipeline import (
     RenderPlan,
     plan_render,
@@ -25,6 +26,7 @@ __all__ = [
     "Projection",
     "RenderPlan",
     "bin_gaussians",
+    "facing_normals",
     "plan_render",
     "project_gaussians",
     "project_gaussians_ut",

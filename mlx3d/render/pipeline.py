@@ -3,9 +3,11 @@
 Effects on demand: ``plan_render`` decides from the scene, camera and options
 which stages run — EWA or unscented projection (UT only for cameras EWA cannot
 represent, or when asked), SH evaluation only up to the degree present and
-none for plain colours, depth accumulated only when asked, the antialiasing
-compensation only when asked — and ``render_gaussians`` returns that plan and
-the stages it actually ran, so tests and benchmarks can see the decision.
+none for plain colours, the geometry channels (depth, depth², normals) only
+when asked, the antialiasing compensation only when asked — and
+``render_gaussians`` returns that plan and the stages it actually ran, so tests
+and benchmarks can see the decision. Every channel asked for is composited in
+the same rasterization pass as the colour.
 
 All inputs are activated values: scales are standard deviations, opacities in
 [0, 1], quaternions any length (normalised inside).
@@ -18,6 +20,7 @@ from dataclasses import dataclass
 import mlx.core as mx
 
 from ..splatting.sh import eval_sh, sh_degree_from_bases
+from . import geometry_channels
 from .binning import TILE_SIZE, bin_gaussians
 from .projection import project_gaussians, project_gaussians_ut
 
@@ -69,6 +72,22 @@ class RenderPlan:
     depth: bool
     antialias: bool
     backend: str
+    depth_variance: bool = False  # also composite depth² (implies depth)
+    normals: bool = False
+    planar_depth: bool = False  # surfel planes instead of centres (see geometry_channels)
+
+    @property
+    def channels(self) -> tuple:
+        """Composited channel groups in order: rgb (3), depth (1, planes 3), depth2 (1, planes 6), normals (3)."""
+        planes = "_planes" if self.planar_depth else ""
+        out = ["rgb"]
+        if self.depth:
+            out.append("depth" + planes)
+        if self.depth_variance:
+            out.append("depth2" + planes)
+        if self.normals:
+            out.append("normals")
+        return tuple(out)
 
     @property
     def stages(self) -> tuple:
@@ -78,11 +97,16 @@ class RenderPlan:
         out.append("bin_tiles")
         if self.sh_degree is not None:
             out.append(f"eval_sh_degree_{self.sh_degree}")
-        out.append("rasterize_rgb+depth" if self.depth else "rasterize_rgb")
+        if self.normals or self.planar_depth:
+            out.append("gaussian_normals")
+        out.append("rasterize_" + "+".join(self.channels))
         return tuple(out)
 
 
-def plan_render(camera, colors=None, sh=None, sh_degree: int = 3, projection: str = "auto", antialias: bool = False, render_depth: bool = False, backend: str = "auto") -> RenderPlan:
+def plan_render(
+    camera, colors=None, sh=None, sh_degree: int = 3, projection: str = "auto", antialias: bool = False, render_depth: bool = False,
+    backend: str = "auto", render_depth_variance: bool = False, render_normals: bool = False, planar_depth: bool = False,
+) -> RenderPlan:
     """Decide the stages for a render (see the module docstring); raises ValueError for conflicts."""
     if projection not in PROJECTIONS:
         raise ValueError(f"projection must be one of {PROJECTIONS}, got {projection!r}")
@@ -94,7 +118,9 @@ def plan_render(camera, colors=None, sh=None, sh_degree: int = 3, projection: st
     degree = None
     if sh is not None:
         degree = min(int(sh_degree), sh_degree_from_bases(sh.shape[1]))
-    return RenderPlan(method, degree, bool(render_depth), bool(antialias), resolve_backend(backend))
+    variance = bool(render_depth_variance)
+    depth = bool(render_depth) or variance
+    return RenderPlan(method, degree, depth, bool(antialias), resolve_backend(backend), variance, bool(render_normals), bool(planar_depth) and depth)
 
 
 def _project_and_bin(camera, means, quats, scales, opacities, plan: RenderPlan, blur, tile_size, ran=None):
@@ -129,22 +155,37 @@ def render_gaussians(
     blur: float = 0.3,
     tile_size: int = TILE_SIZE,
     means2d_offset=None,
+    render_depth_variance: bool = False,
+    render_normals: bool = False,
+    planar_depth: bool = False,
+    depth_reference: float | None = None,
 ) -> dict:
     """Render Gaussians from ``camera``; differentiable w.r.t. every float input.
 
     means (N,3), quats (N,4) w,x,y,z, scales (N,3) std-devs, opacities (N,) in
     [0,1]; colour from ``colors`` (N,3) or SH ``sh`` (N,K,3) evaluated up to
     ``sh_degree`` (clamped at 0 as in 3DGS). background: (3,) or None (black).
-    Returns a dict: ``image`` (H,W,3), ``alpha`` (H,W), ``depth`` (H,W)
-    expected depth (when ``render_depth``), ``means2d`` (N,2), ``conics``,
-    ``radii`` (N,) int32, ``depths`` (N,), ``visible`` (N,) bool, ``plan``
-    and ``stages`` (what ran).
+    Returns a dict: ``image`` (H,W,3), ``alpha`` (H,W), ``means2d`` (N,2),
+    ``conics``, ``radii`` (N,) int32, ``depths`` (N,), ``visible`` (N,) bool,
+    ``plan`` and ``stages`` (what ran), and the geometry asked for, each 0
+    where nothing is hit:
+
+    - ``render_depth``: ``depth`` (H,W), the alpha-normalised expected camera z;
+    - ``render_depth_variance``: also ``depth_variance`` (H,W), the
+      alpha-weighted variance of the Gaussians' z along each pixel's ray
+      (computed around ``depth_reference``, default the mean visible depth, to
+      keep float32 cancellation small);
+    - ``render_normals``: ``normals`` (H,W,3), the alpha-weighted world-space
+      local z axes facing the camera (``facing_normals``), normalised to unit
+      length;
+    - ``planar_depth``: depth and variance of each Gaussian's plane (a
+      surfel's) instead of its centre, see ``geometry_channels``.
 
     means2d_offset: optional (N,2) added to the projected 2D means. Pass zeros
     and differentiate w.r.t. it to get dL/d(means2d), the screen-space
     gradient that density control accumulates.
     """
-    plan = plan_render(camera, colors, sh, sh_degree, projection, antialias, render_depth, backend)
+    plan = plan_render(camera, colors, sh, sh_degree, projection, antialias, render_depth, backend, render_depth_variance, render_normals, planar_depth)
     ran = []
     proj, opac, bins = _project_and_bin(camera, means, quats, scales, opacities, plan, blur, tile_size, ran)
     if plan.sh_degree is not None:
@@ -153,15 +194,20 @@ def render_gaussians(
         ran.append(f"eval_sh_degree_{plan.sh_degree}")
     else:
         rgb = colors
-    features = mx.concatenate([rgb, proj.depths[:, None]], axis=1) if plan.depth else rgb
+    if plan.depth_variance and depth_reference is None:
+        depth_reference = geometry_channels.reference_depth(proj.depths, proj.radii)
+    blocks = [rgb] + geometry_channels.pack(plan, camera, means, quats, proj, depth_reference)
+    if plan.normals or plan.planar_depth:
+        ran.append("gaussian_normals")
+    features = mx.concatenate(blocks, axis=1) if len(blocks) > 1 else rgb
     means2d = proj.means2d if means2d_offset is None else proj.means2d + means2d_offset
     bg = None
     if background is not None:
         bg = mx.array(background, dtype=mx.float32)
-        if plan.depth:
-            bg = mx.concatenate([bg, mx.zeros((1,))])
+        if features.shape[1] > 3:
+            bg = mx.concatenate([bg, mx.zeros((features.shape[1] - 3,))])
     accum, alpha = rasterize_features(means2d, proj.conics, features, opac, bins, camera.width, camera.height, bg, plan.backend)
-    ran.append("rasterize_rgb+depth" if plan.depth else "rasterize_rgb")
+    ran.append("rasterize_" + "+".join(plan.channels))
     out = {
         "image": accum[..., :3],
         "alpha": alpha,
@@ -173,8 +219,7 @@ def render_gaussians(
         "plan": plan,
         "stages": tuple(ran),
     }
-    if plan.depth:
-        out["depth"] = mx.where(alpha > 0, accum[..., 3] / mx.maximum(alpha, 1e-10), 0.0)
+    out.update(geometry_channels.unpack(plan, camera, accum, alpha, depth_reference))
     return out
 
 

@@ -29,6 +29,7 @@ import mlx.core as mx
 import numpy as np
 
 from ..io.ply import SplatArrays, read_splat_ply, write_splat_ply
+from ..meshing import DEFAULT_TRIM
 from .ops import merge_splats, resize_sh_rest, transform_splats
 from .sh import num_sh_bases, rgb_to_sh, sh_degree_from_bases, sh_to_rgb
 
@@ -307,6 +308,85 @@ class GaussianModel:
         if self.extra:
             warnings.warn(f"{why}: extra properties {sorted(self.extra)} dropped (rows changed)", stacklevel=3)
         self.extra = {}
+
+    # ------------------------------------------------------------ surfels and meshes
+    def apply_2dgs_constraints(self, max_thickness: float) -> None:
+        """Clamp the third local scale (local z) to at most ``max_thickness`` (scene units), in place.
+
+        Each Gaussian becomes an oriented disc whose normal is its local z axis;
+        the file stays a standard 3DGS PLY (a flat ellipsoid)."""
+        if not max_thickness > 0:
+            raise ValueError(f"max_thickness must be > 0, got {max_thickness}")
+        log_scales = self.params["scales"]
+        thin = mx.minimum(log_scales[:, 2:], math.log(max_thickness))
+        self.params["scales"] = mx.concatenate([log_scales[:, :2], thin], axis=1)
+
+    def surfel_points(self, min_opacity: float = 0.01, max_points: int | None = None, orient_towards=None):
+        """Oriented samples at the Gaussians' centres, for surface reconstruction.
+
+        Each Gaussian is read as a disc: its normal is the local axis with the
+        smallest scale (local z for a surfel), its area π·s_a·s_b from the two
+        other scales. Rows with opacity below ``min_opacity`` are dropped; with
+        ``max_points`` only the highest opacity·s_a·s_b are kept. Normals point
+        towards the nearest of the ``orient_towards`` (C,3) positions (e.g. the
+        training cameras' centres), or away from the samples' centroid.
+
+        Returns numpy ``(points (M,3) float32, normals (M,3) float32 unit,
+        weights (M,) float32 = opacity · disc area in scene units²,
+        colors (M,3) float32 base colour in [0,1])``.
+        """
+        from ..transforms import quaternion_to_matrix
+
+        if max_points is not None and max_points < 1:
+            raise ValueError(f"max_points must be >= 1, got {max_points}")
+        opacity = np.array(self.opacities, dtype=np.float64)
+        keep = np.flatnonzero(opacity >= min_opacity)
+        scales = np.exp(np.array(self.params["scales"], dtype=np.float64)[keep])
+        order = np.argsort(scales, axis=1)
+        thin = order[:, 0]
+        disc = np.take_along_axis(scales, order[:, 1:], axis=1).prod(axis=1)
+        score = opacity[keep] * disc
+        if max_points is not None and keep.size > max_points:
+            top = np.sort(np.argsort(-score, kind="stable")[:max_points])
+            keep, thin, score = keep[top], thin[top], score[top]
+        points = np.array(self.means, dtype=np.float64)[keep]
+        rot = quaternion_to_matrix(np.array(self.params["quats"], dtype=np.float64)[keep])
+        normals = rot[np.arange(keep.size), :, thin]
+        if orient_towards is not None:
+            centres = np.asarray(orient_towards, dtype=np.float64).reshape(-1, 3)
+            if centres.shape[0] == 0:
+                raise ValueError("orient_towards is empty; pass (C,3) positions or None")
+            from ..neighbors import knn
+
+            nearest, _ = knn(centres, 1, queries=points)
+            towards = centres[nearest[:, 0]] - points
+        else:
+            towards = points - points.mean(axis=0) if keep.size else points
+        normals *= np.where(np.sum(normals * towards, axis=1) < 0, -1.0, 1.0)[:, None]
+        colors = np.clip(np.array(self.colors, dtype=np.float64)[keep], 0.0, 1.0)
+        f32 = lambda a: np.ascontiguousarray(a, dtype=np.float32)  # noqa: E731
+        return f32(points), f32(normals), f32(math.pi * score), f32(colors)
+
+    def extract_surface_mesh(
+        self, resolution: int = 64, padding: float = 0.1, min_opacity: float = 0.01, max_points: int | None = 200_000,
+        orient_towards=None, trim: float | None = DEFAULT_TRIM, progress=None,
+    ):
+        """A triangle mesh of the surface the Gaussians describe (``mlx3d.meshing.SurfaceMesh``).
+
+        Poisson reconstruction (``mlx3d.meshing.reconstruct_surface``) from
+        ``surfel_points(min_opacity, max_points, orient_towards)`` on a
+        ``resolution``³ grid over their bounding box plus ``padding``; faces
+        farther than ``trim`` voxels from every sample are removed (None or 0
+        keeps all); vertex colours from the nearest samples. In the model's
+        frame and units. Raises ``MeshingError`` when no Gaussian is opaque
+        enough. ``progress(done, total)`` may raise to cancel.
+        """
+        from ..meshing import MeshingError, reconstruct_surface
+
+        points, normals, weights, colors = self.surfel_points(min_opacity, max_points, orient_towards)
+        if points.shape[0] == 0:
+            raise MeshingError(f"no Gaussian has opacity >= {min_opacity} (of {len(self)}); nothing to mesh")
+        return reconstruct_surface(points, normals, weights, colors, resolution=resolution, padding=padding, trim=trim, progress=progress)
 
     # ------------------------------------------------------------ rendering
     def render(self, camera, background=None, antialias: bool = False, projection: str = "auto", render_depth: bool = False, sh_degree: int | None = None, **kwargs) -> dict:

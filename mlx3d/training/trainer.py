@@ -6,6 +6,13 @@ offset, see ``render_gaussians(means2d_offset=...)``) and takes an Adam step
 with 3DGS's per-parameter learning rates. Schedules (SH degree increase,
 densification, opacity reset) are pure functions of the step so they can be
 tested and inspected (``events_at``).
+
+``method='2dgs'`` trains surfels: vanilla density control, the third local
+scale clamped to ``two_d_thickness`` times the scene extent after every step
+(``GaussianModel.apply_2dgs_constraints``), and the geometry regularisers of
+``mlx3d.training.geometry`` on by default. Those regularisers work with any
+method; with their weights at 0 the depth and normal channels are not
+rendered at all.
 """
 
 from __future__ import annotations
@@ -23,6 +30,7 @@ from ..render import render_gaussians
 from ..splatting.model import PARAM_NAMES, GaussianModel
 from .adam import Adam
 from .density import add_gaussians_mcmc, densify_and_prune, relocate_dead, reset_opacities, sgld_noise
+from .geometry import DepthUnprojector, depth_variance_loss, normal_consistency_loss
 from .metrics import photometric_loss, psnr
 
 
@@ -30,11 +38,14 @@ class TrainingError(Mlx3dError, RuntimeError):
     """Training cannot go on (NaN/Inf loss or parameters); the message says where."""
 
 
+METHODS = ("vanilla", "mcmc", "2dgs")
+
+
 @dataclass
 class TrainerConfig:
     """Settings of a training run; defaults follow 3DGS for 30k steps."""
 
-    method: str = "vanilla"  # 'vanilla' (adaptive density control) | 'mcmc' (3DGS as MCMC); '2dgs' is not implemented yet
+    method: str = "vanilla"  # 'vanilla' (adaptive density control) | 'mcmc' (3DGS as MCMC) | '2dgs' (surfels)
     steps: int = 30_000
     lambda_dssim: float = 0.2
     background: object = "black"  # 'black' | 'white' | 'random' | (r, g, b)
@@ -72,6 +83,12 @@ class TrainerConfig:
     bilateral_grid_shape: tuple = (16, 16, 8)
     bilateral_grid_lr: float = 2e-3
     lambda_bilateral_tv: float = 10.0
+    # surfels and geometry regularisers (see mlx3d.training.geometry); None: the method's default
+    two_d_thickness: float = 1e-3  # '2dgs': largest third scale, as a fraction of the scene extent
+    lambda_2d_depth_variance: float | None = None  # '2dgs': 100, else 0
+    lambda_2d_normal_consistency: float | None = None  # '2dgs': 0.05, else 0
+    geometry_min_alpha: float = 0.5  # the regularisers apply where the render's alpha reaches this
+    geometry_from: int = 1000  # and from this step on
     seed: int = 0
     low_memory: bool = False  # clear MLX's buffer cache after densification
     cache_limit_gb: float | None = None
@@ -80,10 +97,19 @@ class TrainerConfig:
     extra: dict = field(default_factory=dict)
 
     def __post_init__(self):
-        if self.method not in ("vanilla", "mcmc"):
-            raise ValueError(f"method {self.method!r} is not available; use 'vanilla' or 'mcmc'")
+        if self.method not in METHODS:
+            raise ValueError(f"method {self.method!r} is not available; use one of {METHODS}")
         if self.steps < 1:
             raise ValueError(f"steps must be >= 1, got {self.steps}")
+        surfels = self.method == "2dgs"
+        if self.lambda_2d_depth_variance is None:
+            self.lambda_2d_depth_variance = 100.0 if surfels else 0.0
+        if self.lambda_2d_normal_consistency is None:
+            self.lambda_2d_normal_consistency = 0.05 if surfels else 0.0
+        if self.lambda_2d_depth_variance < 0 or self.lambda_2d_normal_consistency < 0:
+            raise ValueError("lambda_2d_depth_variance and lambda_2d_normal_consistency must be >= 0")
+        if not self.two_d_thickness > 0:
+            raise ValueError(f"two_d_thickness must be > 0, got {self.two_d_thickness}")
 
 
 def events_at(config: TrainerConfig, step: int) -> tuple:
@@ -126,6 +152,9 @@ class GaussianTrainer:
         self.optimizer = Adam(self.learning_rates())
         self._reset_stats()
         self.opacity_resets = 0
+        self.unprojector = DepthUnprojector()
+        if self.config.method == "2dgs":
+            self.model.apply_2dgs_constraints(self.max_thickness)
         if self.config.cache_limit_gb is not None:
             mx.set_cache_limit(int(self.config.cache_limit_gb * 2**30))
 
@@ -134,6 +163,11 @@ class GaussianTrainer:
 
         self.bilateral = BilateralGrid(num_images, self.config.bilateral_grid_shape)
         self.grid_optimizer = Adam({"grid": self.config.bilateral_grid_lr})
+
+    @property
+    def max_thickness(self) -> float:
+        """'2dgs': the largest third scale, in scene units."""
+        return self.config.two_d_thickness * self.scene_extent
 
     # ------------------------------------------------------------------ schedules
     def learning_rates(self) -> dict:
@@ -185,12 +219,17 @@ class GaussianTrainer:
         params = self.model.params
         n = len(self.model)
         degree = min(self.active_sh_degree, self.model.sh_degree)
+        geometry = self.step_count >= c.geometry_from
+        lam_var = c.lambda_2d_depth_variance if geometry else 0.0
+        lam_normal = c.lambda_2d_normal_consistency if geometry else 0.0
 
         def loss_fn(p, offset, grid):
             sh = mx.concatenate([p["sh_dc"], p["sh_rest"]], axis=1)
             out = render_gaussians(
                 camera, p["means"], p["quats"], mx.exp(p["scales"]), mx.sigmoid(p["opacities"]), sh=sh, sh_degree=degree,
                 background=bg, antialias=c.antialias, projection=c.projection, means2d_offset=offset,
+                render_depth=lam_normal > 0, render_depth_variance=lam_var > 0, render_normals=lam_normal > 0,
+                planar_depth=c.method == "2dgs",
             )
             image = out["image"]
             if use_grid:
@@ -199,6 +238,12 @@ class GaussianTrainer:
             loss = photometric_loss(image, target, c.lambda_dssim, mask)
             if use_grid:
                 loss = loss + c.lambda_bilateral_tv * self.bilateral.tv_loss(grid)
+            if lam_var > 0:
+                out["depth_variance_loss"] = depth_variance_loss(out["depth_variance"], out["alpha"], c.geometry_min_alpha, self.scene_extent)
+                loss = loss + lam_var * out["depth_variance_loss"]
+            if lam_normal > 0:
+                out["normal_loss"] = normal_consistency_loss(out["normals"], out["depth"], out["alpha"], camera, self.unprojector, c.geometry_min_alpha)
+                loss = loss + lam_normal * out["normal_loss"]
             if c.method == "mcmc":
                 loss = loss + c.mcmc_opacity_reg * mx.mean(mx.sigmoid(p["opacities"])) + c.mcmc_scale_reg * mx.mean(mx.exp(p["scales"]))
             return loss, out
@@ -214,6 +259,8 @@ class GaussianTrainer:
         self.model.params = self.optimizer.update(params, grads)
         if use_grid:
             self.bilateral.params = self.grid_optimizer.update({"grid": grid_in}, {"grid": grad_grid})["grid"]
+        if c.method == "2dgs":
+            self.model.apply_2dgs_constraints(self.max_thickness)
         if c.method == "mcmc":
             self.model.params["means"] = sgld_noise(self.model.params, self.optimizer.lrs["means"], c.mcmc_noise_scale, self.rng)
         self.step_count += 1
@@ -226,6 +273,9 @@ class GaussianTrainer:
         self.max_radii = np.maximum(self.max_radii, np.array(out["radii"]))
 
         info = {"step": self.step_count, "loss": loss_value, "psnr": float(psnr(mx.clip(out["image"], 0, 1), target, mask))}
+        for key in ("depth_variance_loss", "normal_loss"):
+            if key in out:
+                info[key] = float(out[key])
         for event in events_at(c, self.step_count):
             info[event] = self._apply_event(event)
         info["num_gaussians"] = len(self.model)  # after this step's density control

@@ -362,6 +362,27 @@ def test_points_lie_on_the_surfaces_with_the_material_colours(captured):
     assert np.array_equal(np.unique(rgb[on_cube], axis=0), [srgb8(CUBE_RGB)])
 
 
+def test_mesh_ply_holds_the_captured_triangles_in_world_space(captured):
+    from mlx3d.io.mesh_ply import read_mesh_ply
+
+    mesh = read_mesh_ply(captured.out / "mesh.ply")
+    vertices, faces = np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces)
+    tris = vertices[faces]
+    area = lambda t: 0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1).sum()
+    volume = lambda t: np.einsum("ij,ij->i", t[:, 0], np.cross(t[:, 1], t[:, 2])).sum() / 6.0
+    blender = np.concatenate([captured.tris["Cube"], captured.tris["Sphere"]])
+    assert len(faces) == len(blender) and area(tris) == pytest.approx(area(blender), rel=1e-6)
+    key = lambda t: sorted(tuple(sorted(map(tuple, np.round(c, 5)))) for c in t)
+    assert key(tris) == key(blender), "the same triangles"
+    assert volume(tris) == pytest.approx(volume(blender), rel=1e-5) and volume(tris) > 1.0  # wound outward, like Blender's
+    assert len(vertices) == len(np.unique(faces)) == 8 + 32 * 15 + 2  # each object's own vertices, welded
+    colours = np.rint(np.asarray(mesh.colors, np.float64) * 255).astype(int)  # uchar in the file, as [0, 1] here
+    on_sphere = np.linalg.norm(vertices - SPHERE_CENTRE, axis=1) < SPHERE_RADIUS + 1e-4
+    assert on_sphere.sum() == 32 * 15 + 2
+    assert np.array_equal(np.unique(colours[on_sphere], axis=0), [srgb8(SPHERE_RGB)])
+    assert np.array_equal(np.unique(colours[~on_sphere], axis=0), [srgb8(CUBE_RGB)])
+
+
 def test_scene_is_left_as_it_was(captured):
     assert captured.after == captured.before
     assert captured.seconds < 20
@@ -488,6 +509,18 @@ def test_point_colours_from_colour_attributes_and_defaults(extension, clean_scen
     assert np.array_equal(np.unique(colours[points[:, 1] > 2.5], axis=0), [[231, 231, 231]])
     again = capture.CaptureSession(tmp_path / "ds", objects=["quads", plain], num_points=400, seed=3)
     assert np.array_equal(again.points, points), "seeded"
+
+
+def test_ground_truth_mesh_of_a_mirrored_object_stays_closed_and_outward(extension, clean_scene, tmp_path):
+    capture = extension.addon.capture
+    bpy.ops.mesh.primitive_cube_add(size=2.0, location=(1.0, 2.0, 3.0))
+    cube = bpy.context.active_object
+    cube.scale = (-1.0, 2.0, 0.5)  # a mirroring transform turns the winding of Blender's triangles
+    bpy.context.view_layer.update()
+    session = capture.CaptureSession(tmp_path / "ds", objects=[cube], num_points=10)
+    session.close()
+    assert session.mesh.is_watertight() and session.mesh.volume() == pytest.approx(8.0, rel=1e-6)
+    assert np.allclose(session.mesh.vertices.mean(axis=0), (1.0, 2.0, 3.0), atol=1e-6)
 
 
 def test_no_meshes_is_a_clear_error_and_writes_nothing(extension, clean_scene, tmp_path):

@@ -238,7 +238,7 @@ def test_bad_input_is_a_clear_error_and_leaves_the_scene_alone(extension, clean_
     with pytest.raises(train.TrainError, match="no initial points"):
         train.train_dataset(bare, steps=2)
     with pytest.raises(train.TrainError, match="not available"):
-        train.TrainSession(dataset, steps=2, method="2dgs")
+        train.TrainSession(dataset, steps=2, method="3dgs-fast")
     with pytest.raises(train.TrainError, match="TrainerConfig fields"):
         train.TrainSession(dataset, steps=2, densify_sometimes=True)
     with pytest.raises(train.TrainError, match="folder .* does not exist"):

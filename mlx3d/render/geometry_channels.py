@@ -1,0 +1,120 @@
+"""Geometry channels composited with the colour: depth, depth², normals.
+
+Per-Gaussian features are packed into extra rasterizer channels by
+``pack`` and turned back into per-pixel maps by ``unpack``. Depth is the
+camera z. Two depth models:
+
+- centre (default): each Gaussian contributes the depth of its centre;
+- planar (``planar_depth``, for surfels): each Gaussian contributes the depth
+  of its plane (through the mean, normal its local z axis) along the pixel's
+  ray, to first order around the projected mean:
+  ``z(q) = a + g·q`` with q the pixel relative to the image centre, so a
+  tilted surface covered by discs renders a smooth, tilted depth map instead
+  of steps. ``g`` uses the pinhole (or orthographic) Jacobian at the mean and
+  is bounded at grazing angles (|cos| >= 0.1). Its compositing needs 3 depth
+  and 6 second-moment channels instead of 1 and 1.
+
+The depth variance is computed about a reference depth (the mean visible
+depth unless given) to keep float32 cancellation small.
+"""
+
+from __future__ import annotations
+
+import mlx.core as mx
+
+MIN_COS = 0.1  # planar depth: smallest |cos(ray, normal)| used for the depth slope
+
+
+def facing_normals(camera, means, quats) -> mx.array:
+    """(N,3) world-space unit local z axes of the Gaussians, flipped to face ``camera``.
+
+    The local z axis is a surfel's normal (the thin axis under
+    ``GaussianModel.apply_2dgs_constraints``). "Facing" means a negative dot
+    product with the viewing direction (from the centre to the mean, or the
+    forward axis of an orthographic camera)."""
+    q = quats / mx.maximum(mx.linalg.norm(quats, axis=-1, keepdims=True), 1e-12)
+    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    axis = mx.stack([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)], axis=-1)
+    if camera.model == "orthographic":
+        view = mx.array(camera.camtoworld[:3, 2], dtype=mx.float32)[None, :]
+    else:
+        view = means - mx.array(camera.center, dtype=mx.float32)
+    sign = mx.where(mx.sum(axis * view, axis=-1, keepdims=True) > 0, -1.0, 1.0)
+    return mx.stop_gradient(sign) * axis
+
+
+def _depth_planes(camera, means, normals, depths, means2d):
+    """Per-Gaussian ``(a (N,), g (N,2))`` of ``z(q) = a + g·q``, q = pixel - image centre."""
+    rot = mx.array(camera.viewmat[:3, :3], dtype=mx.float32)
+    n_c = normals @ rot.T
+    scale = mx.array([1.0 / camera.fx, 1.0 / camera.fy], dtype=mx.float32)
+    if camera.model == "orthographic":
+        cos, length, factor = n_c[:, 2], 1.0, 1.0
+    else:
+        ray = (means @ rot.T + mx.array(camera.viewmat[:3, 3], dtype=mx.float32)) / depths[:, None]  # (x/z, y/z, 1)
+        cos, length, factor = mx.sum(n_c * ray, axis=-1), mx.linalg.norm(ray, axis=-1), depths
+    bound = MIN_COS * length
+    cos = mx.where(mx.abs(cos) < bound, mx.where(cos < 0, -bound, bound), cos)
+    slope = -n_c[:, :2] * scale * (factor / cos)[:, None]
+    centre = mx.array([camera.width / 2.0, camera.height / 2.0], dtype=mx.float32)
+    a = depths - mx.sum(slope * (means2d - centre), axis=-1)
+    return a, slope
+
+
+def reference_depth(depths, radii) -> mx.array:
+    """Mean depth of the visible Gaussians (no gradient): the default variance reference."""
+    visible = (radii > 0).astype(mx.float32)
+    return mx.stop_gradient(mx.sum(depths * visible) / mx.maximum(mx.sum(visible), 1.0))
+
+
+def pack(plan, camera, means, quats, proj, reference) -> list:
+    """(N,k) feature blocks for the geometry channels of ``plan``, in ``plan.channels`` order."""
+    blocks = []
+    normals = facing_normals(camera, means, quats) if (plan.normals or plan.planar_depth) else None
+    if plan.planar_depth:
+        a, g = _depth_planes(camera, means, normals, proj.depths, proj.means2d)
+        blocks.append(mx.concatenate([a[:, None], g], axis=1))
+        if plan.depth_variance:
+            b = a - reference
+            gu, gv = g[:, 0], g[:, 1]
+            blocks.append(mx.stack([b * b, 2 * b * gu, 2 * b * gv, gu * gu, 2 * gu * gv, gv * gv], axis=1))
+    elif plan.depth:
+        blocks.append(proj.depths[:, None])
+        if plan.depth_variance:
+            blocks.append(mx.square(proj.depths - reference)[:, None])
+    if plan.normals:
+        blocks.append(normals)
+    return blocks
+
+
+def unpack(plan, camera, accum, alpha, reference) -> dict:
+    """Per-pixel maps from the composited channels after the 3 colour channels (see ``render_gaussians``)."""
+    out = {}
+    hit = alpha > 0
+    inv_alpha = 1.0 / mx.maximum(alpha, 1e-10)
+    col = 3
+    if plan.depth:
+        if plan.planar_depth:
+            u = mx.arange(camera.width, dtype=mx.float32) + 0.5 - camera.width / 2.0
+            v = mx.arange(camera.height, dtype=mx.float32)[:, None] + 0.5 - camera.height / 2.0
+            depth = (accum[..., col] + u * accum[..., col + 1] + v * accum[..., col + 2]) * inv_alpha
+            col += 3
+        else:
+            depth = accum[..., col] * inv_alpha
+            col += 1
+        out["depth"] = mx.where(hit, depth, 0.0)
+    if plan.depth_variance:
+        if plan.planar_depth:
+            m = [accum[..., col + k] for k in range(6)]
+            second = (m[0] + u * m[1] + v * m[2] + u * u * m[3] + u * v * m[4] + v * v * m[5]) * inv_alpha
+            col += 6
+        else:
+            second = accum[..., col] * inv_alpha
+            col += 1
+        # E[(z-r)²] - (E[z]-r)², both about the same reference r
+        out["depth_variance"] = mx.where(hit, mx.maximum(second - mx.square(depth - reference), 0.0), 0.0)
+    if plan.normals:
+        n = accum[..., col : col + 3]
+        length = mx.sqrt(mx.sum(n * n, axis=-1, keepdims=True) + 1e-20)  # finite gradient at n = 0
+        out["normals"] = mx.where(hit[..., None], n / length, 0.0)
+    return out

@@ -1,0 +1,353 @@
+"""Surfels: geometry channels of the renderer, the 2DGS regularisers, surfel training and oriented samples.
+
+Oracles: analytic compositing of two Gaussians on one ray, central finite
+differences, analytic planes (their normals and depths), and invariances.
+"""
+
+import math
+
+import mlx.core as mx
+import numpy as np
+import pytest
+
+from mlx3d.cameras import Camera
+from mlx3d.render import facing_normals, render_gaussian_features, render_gaussians
+from mlx3d.splatting import GaussianModel
+from mlx3d.training import geometry
+from mlx3d.training.trainer import GaussianTrainer, TrainerConfig
+from mlx3d.transforms import matrix_to_quaternion, quaternion_to_matrix
+
+
+def front_camera(width=41, height=33, **kw):
+    """Looks along +y from y=-4; odd sizes put the principal point on a pixel centre."""
+    return Camera.look_at(eye=(0.0, -4.0, 0.0), at=(0.0, 0.0, 0.0), up=(0, 0, 1), width=width, height=height, fov=50.0, **kw)
+
+
+def quat_from_z_to(normals):
+    """(N,4) quaternions rotating local z onto each unit normal (any twist)."""
+    normals = np.asarray(normals, np.float64)
+    helper = np.where(np.abs(normals[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])
+    x = np.cross(helper, normals)
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    y = np.cross(normals, x)
+    return matrix_to_quaternion(np.stack([x, y, normals], axis=2)).astype(np.float32)
+
+
+def plane_surfels(n_side=24, size=2.0, tilt_deg=0.0, seed=0):
+    """Discs on a square in the plane y = 0 (facing the front camera), optionally tilted about z."""
+    g = (np.arange(n_side) + 0.5) / n_side * size - size / 2
+    xx, zz = np.meshgrid(g, g)
+    pts = np.stack([xx.ravel(), np.zeros(xx.size), zz.ravel()], 1)
+    normal = np.array([0.0, -1.0, 0.0])
+    spacing = size / n_side
+    quats = quat_from_z_to(np.repeat(normal[None], len(pts), 0))
+    if tilt_deg:
+        a = math.radians(tilt_deg)
+        tilt = np.array([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1]])
+        pts = pts @ tilt.T
+        quats = matrix_to_quaternion(tilt[None] @ quaternion_to_matrix(quats.astype(np.float64))).astype(np.float32)
+    rng = np.random.default_rng(seed)
+    return {
+        "means": mx.array(pts.astype(np.float32)),
+        "quats": mx.array(quats),
+        "scales": mx.array(np.tile(np.float32([spacing, spacing, 1e-4]), (len(pts), 1))),
+        "opacities": mx.array(np.full(len(pts), 0.9, np.float32)),
+        "colors": mx.array(rng.uniform(0, 1, (len(pts), 3)).astype(np.float32)),
+    }
+
+
+# ------------------------------------------------------------------ geometry channels
+@pytest.mark.parametrize("planar", [False, True])
+def test_geometry_channels_composite_like_the_analytic_two_layer_case(planar):
+    cam = front_camera()
+    z = np.array([3.0, 4.5])  # camera depths of two discs on the optical axis
+    a = np.array([0.6, 0.7])
+    normals = np.array([[0.0, -1.0, 0.0], [0.6, 0.8, 0.0]])  # the second faces away: it must be flipped
+    s = {
+        "means": mx.array(np.float32([[0, zi - 4.0, 0] for zi in z])),
+        "quats": mx.array(quat_from_z_to(normals)),
+        "scales": mx.array(np.float32([[0.5, 0.5, 1e-3]] * 2)),
+        "opacities": mx.array(a.astype(np.float32)),
+        "colors": mx.array(np.float32([[1, 0, 0], [0, 1, 0]])),
+    }
+    out = render_gaussians(cam, **s, render_depth_variance=True, render_normals=True, planar_depth=planar, backend="cpu")
+    i, j = cam.height // 2, cam.width // 2  # the projected means: planar and centre depths agree there
+    w = np.array([a[0], a[1] * (1 - a[0])])  # both discs peak (G = 1) at the centre pixel
+    mean = (w @ z) / w.sum()
+    assert float(out["alpha"][i, j]) == pytest.approx(w.sum(), abs=1e-5)
+    assert float(out["depth"][i, j]) == pytest.approx(mean, abs=1e-4)
+    assert float(out["depth_variance"][i, j]) == pytest.approx((w @ (z - mean) ** 2) / w.sum(), rel=1e-3)
+    facing = normals * np.array([[1.0], [-1.0]])
+    expected = w @ facing
+    np.testing.assert_allclose(np.array(out["normals"][i, j]), expected / np.linalg.norm(expected), atol=1e-4)
+    planes = "_planes" if planar else ""
+    assert out["stages"] == ("project_ewa", "bin_tiles", "gaussian_normals", f"rasterize_rgb+depth{planes}+depth2{planes}+normals")
+    # where nothing is hit every geometry channel is 0, and the colour is unchanged by the extra channels
+    assert float(out["alpha"][0, 0]) == 0 and not np.array(out["normals"][0, 0]).any() and float(out["depth_variance"][0, 0]) == 0
+    plain = render_gaussians(cam, **s, backend="cpu")
+    np.testing.assert_allclose(np.array(plain["image"]), np.array(out["image"]), atol=1e-6)
+    assert plain["stages"][-1] == "rasterize_rgb" and "normals" not in plain and "depth_variance" not in plain
+
+
+@pytest.mark.parametrize("model", ["pinhole", "orthographic"])
+def test_planar_depth_follows_a_tilted_disc(model):
+    kw = {"focal": 12.0} if model == "orthographic" else {"fov": 50.0}
+    cam = Camera.look_at(eye=(0.0, -4.0, 0.0), at=(0.0, 0.0, 0.0), up=(0, 0, 1), width=41, height=33, model=model, **kw)
+    normal = np.array([0.5, -0.7, 0.3])
+    normal /= np.linalg.norm(normal)
+    centre = np.array([0.1, 0.2, -0.1])
+    s = {"means": mx.array(centre[None].astype(np.float32)), "quats": mx.array(quat_from_z_to(normal[None])),
+         "scales": mx.array(np.float32([[0.6, 0.4, 1e-4]])), "opacities": mx.array(np.float32([0.99])), "colors": mx.zeros((1, 3))}
+    origins, dirs = cam.rays()
+    t = ((centre - origins) @ normal) / (dirs @ normal)
+    truth = (origins + t[..., None] * dirs - cam.center) @ cam.camtoworld[:3, 2]
+    inside = np.array(render_gaussians(cam, **s, render_depth=True, backend="cpu")["alpha"]) > 0.5
+    planar = np.array(render_gaussians(cam, **s, render_depth=True, planar_depth=True, backend="cpu")["depth"])
+    flat = np.array(render_gaussians(cam, **s, render_depth=True, backend="cpu")["depth"])
+    assert inside.sum() > 40
+    spread = np.abs(truth[inside] - truth[inside].mean()).max()
+    assert spread > 0.2  # the disc is steep in depth
+    assert np.abs(planar[inside] - truth[inside]).max() < (1e-4 if model == "orthographic" else 0.1 * spread)  # first order
+    assert np.abs(flat[inside] - truth[inside]).max() > 0.5 * spread
+
+
+def test_geometry_channels_match_explicit_feature_renders():
+    rng = np.random.default_rng(3)
+    n = 60
+    s = {
+        "means": mx.array(rng.uniform(-1, 1, (n, 3)).astype(np.float32)),
+        "quats": mx.array(rng.normal(size=(n, 4)).astype(np.float32)),
+        "scales": mx.array(rng.uniform(0.05, 0.3, (n, 3)).astype(np.float32)),
+        "opacities": mx.array(rng.uniform(0.2, 0.9, n).astype(np.float32)),
+    }
+    cam = front_camera(48, 40)
+    out = render_gaussians(cam, **s, colors=mx.zeros((n, 3)), render_depth_variance=True, render_normals=True, depth_reference=4.0, backend="cpu")
+    depth = np.asarray(s["means"])[:, 1] + 4.0
+    feats = np.concatenate([depth[:, None], (depth[:, None] - 4.0) ** 2, np.array(facing_normals(cam, s["means"], s["quats"]))], 1)
+    ref = np.array(render_gaussian_features(cam, s["means"], s["quats"], s["scales"], s["opacities"], mx.array(feats.astype(np.float32)), normalize=True, backend="reference"))
+    hit = np.array(out["alpha"]) > 1e-3
+    np.testing.assert_allclose(np.array(out["depth"])[hit], ref[..., 0][hit], atol=2e-4)
+    variance = ref[..., 1] - (ref[..., 0] - 4.0) ** 2
+    np.testing.assert_allclose(np.array(out["depth_variance"])[hit], np.maximum(variance, 0)[hit], atol=2e-3)
+    n_ref = ref[..., 2:5] / np.maximum(np.linalg.norm(ref[..., 2:5], axis=-1, keepdims=True), 1e-12)
+    strong = hit & (np.linalg.norm(ref[..., 2:5], axis=-1) > 0.05)
+    np.testing.assert_allclose(np.array(out["normals"])[strong], n_ref[strong], atol=2e-3)
+    # facing: every normal has a non-positive dot product with the viewing direction
+    view = np.asarray(s["means"]) - cam.center
+    assert (np.sum(np.array(facing_normals(cam, s["means"], s["quats"])) * view, axis=1) <= 1e-6).all()
+
+
+def test_geometry_channel_gradients_match_finite_differences():
+    rng = np.random.default_rng(5)
+    n = 12
+    base = {
+        "means": rng.uniform(-0.5, 0.5, (n, 3)).astype(np.float32),
+        "quats": rng.normal(size=(n, 4)).astype(np.float32),
+        "scales": rng.uniform(0.15, 0.4, (n, 3)).astype(np.float32),
+        "opacities": rng.uniform(0.3, 0.8, n).astype(np.float32),
+    }
+    cam = front_camera(24, 20)
+    w_var = mx.array(rng.normal(size=(20, 24)).astype(np.float32))
+    w_n = mx.array(rng.normal(size=(20, 24, 3)).astype(np.float32))
+
+    def loss(means, quats):
+        out = render_gaussians(cam, means, quats, mx.array(base["scales"]), mx.array(base["opacities"]), colors=mx.zeros((n, 3)),
+                               render_depth_variance=True, render_normals=True, planar_depth=True, depth_reference=4.0, backend="cpu")
+        return mx.sum(w_var * out["depth_variance"]) + mx.sum(w_n * out["normals"])
+
+    g_means, g_quats = mx.grad(loss, argnums=(0, 1))(mx.array(base["means"]), mx.array(base["quats"]))
+    for name, grad, index in (("means", g_means, (3, 1)), ("means", g_means, (7, 0)), ("quats", g_quats, (2, 3)), ("quats", g_quats, (9, 1))):
+        h = 1e-3
+        vals = []
+        for sign in (1, -1):
+            p = {k: v.copy() for k, v in base.items()}
+            p[name][index] += sign * h
+            vals.append(float(loss(mx.array(p["means"]), mx.array(p["quats"]))))
+        fd = (vals[0] - vals[1]) / (2 * h)
+        analytic = float(np.array(grad)[index])
+        assert analytic == pytest.approx(fd, rel=3e-2, abs=3e-2 * max(1.0, abs(fd))), (name, index)
+
+
+# ------------------------------------------------------------------ regularisers
+@pytest.mark.parametrize("model", ["pinhole", "fisheye"])
+def test_depth_normals_of_an_analytic_plane(model):
+    kw = {"dist": (0.05, -0.01, 0.0, 0.0)} if model == "fisheye" else {}
+    cam = Camera.look_at(eye=(0.3, -3.0, 1.2), at=(0.0, 0.0, 0.0), up=(0, 0, 1), width=40, height=30, fov=60.0, model=model, **kw)
+    normal = np.array([0.2, -0.9, 0.3])
+    normal /= np.linalg.norm(normal)
+    origins, dirs = cam.rays()
+    t = -(origins @ normal) / (dirs @ normal)  # plane through the origin
+    hits = origins + t[..., None] * dirs
+    depth = (hits - cam.center) @ cam.camtoworld[:3, 2]  # camera z
+    unprojector = geometry.DepthUnprojector()
+    points = np.array(unprojector.points(cam, mx.array(depth.astype(np.float32))))
+    np.testing.assert_allclose(points, hits, atol=2e-4)
+    n = np.array(geometry.depth_normals(mx.array(points)))
+    facing = normal if normal @ (cam.center - hits.mean((0, 1))) > 0 else -normal
+    np.testing.assert_allclose(n, np.broadcast_to(facing, n.shape), atol=2e-3)
+    assert unprojector.maps(cam)[0] is unprojector.maps(cam)[0]  # cached per camera
+
+
+def test_normal_consistency_and_depth_variance_tell_surfels_on_a_surface_from_others():
+    cam = front_camera(48, 40)
+    unprojector = geometry.DepthUnprojector()
+
+    def losses(s):
+        out = render_gaussians(cam, **s, render_depth_variance=True, render_normals=True, planar_depth=True, backend="cpu")
+        nc = geometry.normal_consistency_loss(out["normals"], out["depth"], out["alpha"], cam, unprojector, 0.5)
+        dv = geometry.depth_variance_loss(out["depth_variance"], out["alpha"], 0.5, 4.0)
+        return float(nc), float(dv)
+
+    for tilt in (0.0, 35.0):
+        flat = plane_surfels(tilt_deg=tilt)
+        nc, dv = losses(flat)
+        assert nc < 0.02 and dv < 1e-5, (tilt, nc, dv)
+    # the same centres with discs turned edge-on to the plane (normals lying in it)
+    sideways = dict(plane_surfels(), quats=mx.array(quat_from_z_to(np.tile([1.0, 0, 0], (24 * 24, 1)))))
+    sideways["scales"] = mx.array(np.tile(np.float32([2 / 24, 1e-4, 2 / 24]), (24 * 24, 1)))  # thin along local y = world y: still a wall seen face on
+    assert losses(sideways)[0] > 0.5
+    # two parallel layers 0.3 apart: variance of two depths
+    front, back = plane_surfels(), plane_surfels()
+    for layer in (front, back):
+        layer["opacities"] = layer["opacities"] * 0.4  # so the back layer shows through
+    back["means"] = back["means"] + mx.array([0.0, 0.3, 0.0])
+    two = {k: mx.concatenate([front[k], back[k]]) for k in front}
+    assert losses(two)[1] > 100 * losses(front)[1] and losses(two)[1] > 1e-4
+
+
+# ------------------------------------------------------------------ surfel training
+def surfel_problem(seed=0):
+    """A textured plane (the truth) seen from above at several angles; surfels start on it with random orientations."""
+    rng = np.random.default_rng(seed)
+    truth = plane_surfels(20)
+    truth["colors"] = mx.array(rng.uniform(0, 1, (400, 3)).astype(np.float32))
+    cams = [Camera.look_at(eye=(2.5 * math.sin(a), -3.0, 2.5 * math.cos(a)), at=(0, 0, 0), up=(0, 0, 1), width=40, height=32, fov=50.0)
+            for a in np.linspace(-0.8, 0.8, 5)]
+    targets = [np.array(render_gaussians(c, **truth, background=(0, 0, 0))["image"]) for c in cams]
+    start = GaussianModel.from_points(np.asarray(truth["means"]), np.asarray(truth["colors"]), sh_degree=0, initial_opacity=0.5)
+    start.params["quats"] = mx.array(rng.normal(size=(400, 4)).astype(np.float32))
+    return start, cams, targets
+
+
+def plane_alignment(model) -> float:
+    """Mean |<local z, plane normal>| (1: every disc lies in the plane y = 0)."""
+    rot = quaternion_to_matrix(np.array(model.params["quats"], np.float64))
+    return float(np.abs(rot[:, 1, 2]).mean())
+
+
+def test_2dgs_keeps_discs_thin_and_the_normal_regulariser_lays_them_on_the_surface():
+    results = {}
+    for lam in (0.0, 0.5):
+        model, cams, targets = surfel_problem()
+        config = TrainerConfig(method="2dgs", steps=150, densify_from=10_000, geometry_from=0, lambda_2d_normal_consistency=lam, lambda_2d_depth_variance=0.0, quats_lr=1e-2)
+        trainer = GaussianTrainer(model, config, scene_extent=3.0)
+        limit = config.two_d_thickness * 3.0
+        assert np.exp(np.array(model.params["scales"])[:, 2]).max() <= limit * (1 + 1e-5)  # clamped from the start
+        infos = [trainer.step(cams[i % 5], targets[i % 5]) for i in range(150)]
+        assert all(math.isfinite(i["loss"]) for i in infos)
+        assert np.exp(np.array(trainer.model.params["scales"])[:, 2]).max() <= limit * (1 + 1e-5)
+        assert ("normal_loss" in infos[-1]) == (lam > 0)
+        results[lam] = plane_alignment(trainer.model)
+    assert results[0.5] > results[0.0] + 0.1, results
+
+
+def test_geometry_channels_are_rendered_only_when_their_losses_are_on(monkeypatch):
+    from mlx3d.training import trainer as trainer_module
+
+    calls = []
+    real = trainer_module.render_gaussians
+
+    def spy(*args, **kwargs):
+        calls.append({k: kwargs[k] for k in ("render_depth", "render_depth_variance", "render_normals")})
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(trainer_module, "render_gaussians", spy)
+    model, cams, targets = surfel_problem(1)
+    for config, expected in (
+        (TrainerConfig(method="vanilla", steps=4), [False, False, False]),
+        (TrainerConfig(method="2dgs", steps=4, geometry_from=2, lambda_2d_normal_consistency=0.0), [False, True, False]),
+        (TrainerConfig(method="2dgs", steps=4, geometry_from=2, lambda_2d_depth_variance=0.0), [True, False, True]),
+    ):
+        calls.clear()
+        trainer = GaussianTrainer(model.copy(), config, scene_extent=3.0)
+        for i in range(4):
+            trainer.step(cams[i], targets[i])
+        assert [list(c.values()) for c in calls] == [[False, False, False]] * 2 + [expected] * 2, config
+
+
+def test_2dgs_training_fits_the_images_and_reduces_the_geometry_losses():
+    model, cams, targets = surfel_problem(2)
+    trainer = GaussianTrainer(model, TrainerConfig(method="2dgs", steps=200, densify_from=10_000, geometry_from=50), scene_extent=3.0)
+    infos = [trainer.step(cams[i % 5], targets[i % 5]) for i in range(200)]
+    assert all(math.isfinite(i["loss"]) for i in infos)
+    assert np.mean([i["psnr"] for i in infos[-5:]]) > np.mean([i["psnr"] for i in infos[:5]]) + 3
+    for key in ("depth_variance_loss", "normal_loss"):
+        assert key not in infos[49] and key in infos[50]
+        assert np.mean([i[key] for i in infos[-5:]]) < np.mean([i[key] for i in infos[50:55]]) / 3, key
+
+
+# ------------------------------------------------------------------ model helpers
+def test_apply_2dgs_constraints_clamps_only_the_third_scale():
+    model = GaussianModel.from_points(np.random.default_rng(0).normal(size=(30, 3)))
+    before = np.exp(np.array(model.params["scales"]))
+    model.apply_2dgs_constraints(0.01)
+    after = np.exp(np.array(model.params["scales"]))
+    np.testing.assert_allclose(after[:, :2], before[:, :2], rtol=1e-6)
+    np.testing.assert_allclose(after[:, 2], np.minimum(before[:, 2], 0.01), rtol=1e-5)
+    with pytest.raises(ValueError, match="max_thickness"):
+        model.apply_2dgs_constraints(0.0)
+
+
+def sphere_model(n=2000, radius=1.0, seed=0, thin_axis=2):
+    """Discs tangent to a sphere; local axis ``thin_axis`` is the (outward, random-signed) normal."""
+    rng = np.random.default_rng(seed)
+    normals = rng.normal(size=(n, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    signed = normals * rng.choice([-1.0, 1.0], size=(n, 1))
+    rot = quaternion_to_matrix(quat_from_z_to(signed).astype(np.float64))
+    quats = matrix_to_quaternion(np.roll(rot, thin_axis - 2, axis=2))  # a cyclic shift keeps det = +1
+    scales = np.full((n, 3), 0.05)
+    scales[:, thin_axis] = 1e-3
+    scales[:, (thin_axis + 1) % 3] = rng.uniform(0.03, 0.06, n)
+    params = {
+        "means": (radius * normals).astype(np.float32),
+        "scales": np.log(scales).astype(np.float32),
+        "quats": quats.astype(np.float32),
+        "opacities": np.full(n, 2.0, np.float32),
+        "sh_dc": np.zeros((n, 1, 3), np.float32),
+        "sh_rest": np.zeros((n, 0, 3), np.float32),
+    }
+    return GaussianModel(params), normals
+
+
+@pytest.mark.parametrize("thin_axis", [2, 0])
+def test_surfel_points_orients_the_thinnest_axis(thin_axis):
+    model, truth = sphere_model(thin_axis=thin_axis)
+    points, normals, weights, colors = model.surfel_points()
+    assert points.shape == normals.shape == colors.shape == (2000, 3) and weights.shape == (2000,)
+    np.testing.assert_allclose(np.sum(normals * truth, axis=1), 1.0, atol=1e-5)  # outward from the centroid
+    scales = np.exp(np.array(model.params["scales"], np.float64))
+    discs = np.sort(scales, axis=1)[:, 1:].prod(axis=1)
+    np.testing.assert_allclose(weights, math.pi * discs / (1 + math.exp(-2.0)), rtol=1e-5)
+    np.testing.assert_allclose(colors, 0.5, atol=1e-6)
+    # towards cameras: one camera far out on +x flips the normals of the far side inwards
+    _, towards = model.surfel_points(orient_towards=[[10.0, 0, 0]])[:2]
+    np.testing.assert_allclose(np.sum(towards * (np.array([10.0, 0, 0]) - points), axis=1) > 0, True)
+
+
+def test_surfel_points_filters_by_opacity_and_caps_by_disc_size():
+    model, _ = sphere_model(200)
+    opac = np.full(200, 2.0, np.float32)
+    opac[:50] = -6.0  # opacity 0.0025
+    model.params["opacities"] = mx.array(opac)
+    points, *_ = model.surfel_points(min_opacity=0.01)
+    assert len(points) == 150
+    capped, _, weights, _ = model.surfel_points(min_opacity=0.01, max_points=20)
+    all_points, _, all_weights, _ = model.surfel_points(min_opacity=0.01)
+    assert len(capped) == 20 and weights.min() >= np.sort(all_weights)[-20]
+    order = [int(np.flatnonzero((all_points == p).all(1))[0]) for p in capped]
+    assert order == sorted(order)  # kept rows stay in model order
+    with pytest.raises(ValueError, match="max_points"):
+        model.surfel_points(max_points=0)
+    with pytest.raises(ValueError, match="orient_towards"):
+        model.surfel_points(orient_towards=np.zeros((0, 3)))
