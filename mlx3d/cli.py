@@ -98,7 +98,48 @@ def _save(model, path: str) -> None:
     print(f"{path}: {len(model):,} splats, SH degree {model.sh_degree}, {os.path.getsize(path) / 1e6:.2f} MB")
 
 
+def _plan_camera(args, model):
+    """The camera ``info --plan`` plans for: the dataset's first training view, or one looking at the model."""
+    from .cameras import Camera
+
+    if args.data:
+        from .datasets import load_dataset
+
+        dataset = load_dataset(args.data)
+        return dataset.frames[(dataset.train or [0])[0]].camera, f"training view 1 of {args.data}"
+    means = np.array(model.means)
+    centre = means.mean(0) if len(means) else np.zeros(3)
+    radius = float(np.linalg.norm(means - centre, axis=1).max()) if len(means) else 1.0
+    eye = centre + 2.5 * max(radius, 1e-6) * np.array([0.0, -1.0, 0.5])
+    kw = {"focal": 256 / (2.2 * max(radius, 1e-6))} if args.camera == "orthographic" else {"fov": 50.0}
+    if args.camera in ("opencv", "fisheye"):
+        kw["dist"] = (0.05, 0.01, 0.0, 0.0) if args.camera == "fisheye" else (0.05, 0.01, 0.0, 0.0, 0.0)
+    return Camera.look_at(eye=eye, at=centre, up=(0, 0, 1), width=256, height=256, model=args.camera, **kw), f"a 256x256 {args.camera} camera"
+
+
+def _print_plan(args, path: str) -> None:
+    from .render import plan_render
+    from .training import TrainerConfig
+    from .training.plan import step_plan
+
+    model = _load(path, "keep")
+    camera, where = _plan_camera(args, model)
+    config = TrainerConfig(method=args.method, antialias=args.antialias, projection=args.projection, bilateral_grid=args.bilateral_grid)
+    render = plan_render(camera, sh=model.sh[:0], sh_degree=model.sh_degree, projection=args.projection, antialias=args.antialias)
+    step = max(args.step, 1)
+    active = min((step - 1) // config.sh_degree_interval if config.sh_degree_interval else model.sh_degree, model.sh_degree)
+    train = step_plan(config, camera, active, step - 1)
+    print(f"camera:              {where}")
+    print(f"render:              {' -> '.join(render.stages)}")
+    print(f"training step {step:,} ({args.method}, SH degree {active}): {' -> '.join(train.stages)}")
+    print(f"not run:             {', '.join(train.skipped)}")
+
+
 def cmd_info(args) -> None:
+    if args.plan:
+        for path in args.files:
+            _print_plan(args, path)
+        return
     for path in args.files:
         summary = ply_summary(path)
         if args.json:
@@ -278,6 +319,14 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("info", cmd_info, "Summarise splat PLY files: count, SH degree, bounds, opacity and scale statistics, extra properties.")
     p.add_argument("files", nargs="+", metavar="FILE.ply")
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    p.add_argument("--plan", action="store_true", help="print the stages a render and a training step run for this file (effects on demand)")
+    p.add_argument("--data", metavar="DATA_DIR", help="--plan: use this dataset's first training camera")
+    p.add_argument("--camera", choices=("pinhole", "opencv", "fisheye", "orthographic"), default="pinhole", help="--plan: camera model without --data")
+    p.add_argument("--method", choices=METHODS, default="vanilla", help="--plan: training method")
+    p.add_argument("--step", type=int, default=1, help="--plan: which training step (schedules start losses and events on their steps)")
+    p.add_argument("--projection", choices=("auto", "ewa", "ut"), default="auto", help="--plan: projection")
+    p.add_argument("--antialias", action="store_true", help="--plan: with antialias compensation")
+    p.add_argument("--bilateral-grid", action="store_true", help="--plan: with the bilateral grid")
 
     p = add("compact", cmd_compact, "Keep the most important splats and/or truncate SH (importance = opacity * max scale^2).")
     p.add_argument("input", metavar="IN.ply")

@@ -115,3 +115,26 @@ def test_console_script_help(command):
     cmd = [exe] if exe else [sys.executable, "-m", "mlx3d.cli"]
     result = subprocess.run(cmd + [command, "--help"], capture_output=True, text=True, timeout=60)
     assert result.returncode == 0 and "usage: mlx3d " + command in result.stdout
+
+
+def test_mesh_writes_a_coloured_mesh_and_refuses_transparent_models(tmp_path, capsys):
+    from mlx3d.io.mesh_ply import read_mesh_ply
+
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(6000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    m = GaussianModel.from_points(d.astype(np.float32), np.tile([0.9, 0.2, 0.1], (6000, 1)), sh_degree=0, initial_opacity=0.9)
+    # discs tangent to the sphere: rotate local z onto the radius (half-angle quaternion from +z)
+    q = np.concatenate([1.0 + d[:, 2:3], -d[:, 1:2], d[:, 0:1], np.zeros((6000, 1))], axis=1)
+    m.params["quats"] = mx.array(q.astype(np.float32))
+    m.params["scales"] = mx.array(np.log(np.tile([0.04, 0.04, 1e-3], (6000, 1))).astype(np.float32))
+    m.save_ply(tmp_path / "ball.ply")
+    assert main(["mesh", str(tmp_path / "ball.ply"), "--out", str(tmp_path / "ball_mesh.ply"), "--resolution", "48"]) == 0
+    assert "faces" in capsys.readouterr().out
+    mesh = read_mesh_ply(tmp_path / "ball_mesh.ply")
+    assert np.abs(np.linalg.norm(mesh.vertices, axis=1) - 1.0).max() < 2 * 2.4 / 48
+    np.testing.assert_allclose(mesh.colors.mean(0), [0.9, 0.2, 0.1], atol=2 / 255)
+    m.params["opacities"] = mx.full((6000,), -9.0)
+    m.save_ply(tmp_path / "clear.ply")
+    assert main(["mesh", str(tmp_path / "clear.ply"), "--out", str(tmp_path / "clear_mesh.ply")]) == 1
+    assert "no Gaussian has opacity" in capsys.readouterr().err and not (tmp_path / "clear_mesh.ply").exists()

@@ -265,7 +265,7 @@ def test_geometry_channels_are_rendered_only_when_their_losses_are_on(monkeypatc
     model, cams, targets = surfel_problem(1)
     for config, expected in (
         (TrainerConfig(method="vanilla", steps=4), [False, False, False]),
-        (TrainerConfig(method="2dgs", steps=4, geometry_from=2, lambda_2d_normal_consistency=0.0), [False, True, False]),
+        (TrainerConfig(method="2dgs", steps=4, geometry_from=2, lambda_2d_normal_consistency=0.0), [True, True, False]),
         (TrainerConfig(method="2dgs", steps=4, geometry_from=2, lambda_2d_depth_variance=0.0), [True, False, True]),
     ):
         calls.clear()
@@ -351,3 +351,29 @@ def test_surfel_points_filters_by_opacity_and_caps_by_disc_size():
         model.surfel_points(max_points=0)
     with pytest.raises(ValueError, match="orient_towards"):
         model.surfel_points(orient_towards=np.zeros((0, 3)))
+
+
+def test_extract_surface_mesh_from_surfels_on_a_sphere():
+    model, _ = sphere_model(20_000, radius=2.0, seed=4)
+    mesh = model.extract_surface_mesh(resolution=96)
+    assert mesh.is_watertight()
+    assert mesh.area() == pytest.approx(4 * math.pi * 4.0, rel=0.02)
+    assert mesh.volume() == pytest.approx(4 / 3 * math.pi * 8.0, rel=0.02)  # positive: faces point outward
+    radius = np.linalg.norm(mesh.vertices, axis=1)
+    voxel = 4.0 * 1.2 / 96
+    assert np.abs(radius - 2.0).max() < voxel
+    np.testing.assert_allclose(mesh.colors, 0.5, atol=1e-5)
+    # oriented towards cameras inside the sphere, the surface turns inside out
+    inside = model.extract_surface_mesh(resolution=48, orient_towards=[[0.0, 0.0, 0.0]])
+    assert inside.volume() < 0
+
+
+def test_extract_surface_mesh_refuses_transparent_or_empty_models():
+    from mlx3d.meshing import MeshingError
+
+    model, _ = sphere_model(100)
+    model.params["opacities"] = mx.full((100,), -10.0)
+    with pytest.raises(MeshingError, match=r"no Gaussian has opacity >= 0.01 \(of 100\)"):
+        model.extract_surface_mesh()
+    with pytest.raises(MeshingError, match="no Gaussian"):
+        model.select(np.zeros(100, bool)).extract_surface_mesh()

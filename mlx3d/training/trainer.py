@@ -32,6 +32,7 @@ from .adam import Adam
 from .density import add_gaussians_mcmc, densify_and_prune, relocate_dead, reset_opacities, sgld_noise
 from .geometry import DepthUnprojector, depth_variance_loss, normal_consistency_loss
 from .metrics import photometric_loss, psnr
+from .plan import step_plan
 
 
 class TrainingError(Mlx3dError, RuntimeError):
@@ -219,33 +220,42 @@ class GaussianTrainer:
         params = self.model.params
         n = len(self.model)
         degree = min(self.active_sh_degree, self.model.sh_degree)
-        geometry = self.step_count >= c.geometry_from
-        lam_var = c.lambda_2d_depth_variance if geometry else 0.0
-        lam_normal = c.lambda_2d_normal_consistency if geometry else 0.0
+        plan = step_plan(c, camera, degree, self.step_count)
+        r, terms = plan.render, set(plan.losses)
 
         def loss_fn(p, offset, grid):
             sh = mx.concatenate([p["sh_dc"], p["sh_rest"]], axis=1)
             out = render_gaussians(
                 camera, p["means"], p["quats"], mx.exp(p["scales"]), mx.sigmoid(p["opacities"]), sh=sh, sh_degree=degree,
-                background=bg, antialias=c.antialias, projection=c.projection, means2d_offset=offset,
-                render_depth=lam_normal > 0, render_depth_variance=lam_var > 0, render_normals=lam_normal > 0,
-                planar_depth=c.method == "2dgs",
+                background=bg, antialias=r.antialias, projection=r.projection, means2d_offset=offset, render_depth=r.depth,
+                render_depth_variance=r.depth_variance, render_normals=r.normals, planar_depth=r.planar_depth, backend=r.backend,
             )
+            ran = list(out["stages"])
             image = out["image"]
             if use_grid:
                 image = self.bilateral.apply(image, image_index, grid, compiled=False)
                 out = dict(out, image=image)
-            loss = photometric_loss(image, target, c.lambda_dssim, mask)
-            if use_grid:
-                loss = loss + c.lambda_bilateral_tv * self.bilateral.tv_loss(grid)
-            if lam_var > 0:
+                ran.append("bilateral_grid")
+            loss = photometric_loss(image, target, c.lambda_dssim, mask)  # skips SSIM when lambda_dssim is 0
+            ran += ["loss_l1", "loss_dssim"] if c.lambda_dssim > 0 else ["loss_l1"]
+            if "depth_variance" in terms:
                 out["depth_variance_loss"] = depth_variance_loss(out["depth_variance"], out["alpha"], c.geometry_min_alpha, self.scene_extent)
-                loss = loss + lam_var * out["depth_variance_loss"]
-            if lam_normal > 0:
+                loss = loss + c.lambda_2d_depth_variance * out["depth_variance_loss"]
+                ran.append("loss_depth_variance")
+            if "normal_consistency" in terms:
                 out["normal_loss"] = normal_consistency_loss(out["normals"], out["depth"], out["alpha"], camera, self.unprojector, c.geometry_min_alpha)
-                loss = loss + lam_normal * out["normal_loss"]
-            if c.method == "mcmc":
-                loss = loss + c.mcmc_opacity_reg * mx.mean(mx.sigmoid(p["opacities"])) + c.mcmc_scale_reg * mx.mean(mx.exp(p["scales"]))
+                loss = loss + c.lambda_2d_normal_consistency * out["normal_loss"]
+                ran.append("loss_normal_consistency")
+            if "bilateral_tv" in terms:
+                loss = loss + c.lambda_bilateral_tv * self.bilateral.tv_loss(grid)
+                ran.append("loss_bilateral_tv")
+            if "opacity_l1" in terms:
+                loss = loss + c.mcmc_opacity_reg * mx.mean(mx.sigmoid(p["opacities"]))
+                ran.append("loss_opacity_l1")
+            if "scale_l1" in terms:
+                loss = loss + c.mcmc_scale_reg * mx.mean(mx.exp(p["scales"]))
+                ran.append("loss_scale_l1")
+            out["ran"] = ran
             return loss, out
 
         grid_in = self.bilateral.params if use_grid else mx.zeros((1,))
@@ -255,14 +265,17 @@ class GaussianTrainer:
         if not math.isfinite(loss_value) or not all(bool(mx.all(mx.isfinite(g))) for g in grads.values()):
             raise TrainingError(f"step {self.step_count + 1}: the loss or a gradient is not finite (loss {loss_value}); parameters left at the last good step")
 
+        ran = out["ran"] + ["adam"]
         self.optimizer.lrs = self.learning_rates()
         self.model.params = self.optimizer.update(params, grads)
         if use_grid:
             self.bilateral.params = self.grid_optimizer.update({"grid": grid_in}, {"grid": grad_grid})["grid"]
-        if c.method == "2dgs":
+        if "thickness_clamp" in plan.after_step:
             self.model.apply_2dgs_constraints(self.max_thickness)
-        if c.method == "mcmc":
+            ran.append("thickness_clamp")
+        if "sgld_noise" in plan.after_step:
             self.model.params["means"] = sgld_noise(self.model.params, self.optimizer.lrs["means"], c.mcmc_noise_scale, self.rng)
+            ran.append("sgld_noise")
         self.step_count += 1
 
         # screen-space gradient in NDC units (as 3DGS's threshold expects)
@@ -276,9 +289,11 @@ class GaussianTrainer:
         for key in ("depth_variance_loss", "normal_loss"):
             if key in out:
                 info[key] = float(out[key])
-        for event in events_at(c, self.step_count):
+        for event in plan.events:
             info[event] = self._apply_event(event)
+            ran.append(event)
         info["num_gaussians"] = len(self.model)  # after this step's density control
+        info["stages"] = tuple(ran)
         return info
 
     def _apply_event(self, event: str):

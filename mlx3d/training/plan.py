@@ -1,0 +1,89 @@
+"""What one training step runs, decided in one place (effects on demand).
+
+``step_plan(config, camera, ...)`` lists the stages a step runs for a
+configuration, a camera and the point in the schedule: the render stages
+(``mlx3d.render.plan_render``: projection mode, antialias compensation, SH
+degree evaluated, the channels composited), the colour correction, each loss
+term, what is applied after the optimizer step, and the schedule events.
+A stage is listed only when its effect is on: a zero weight, a method that
+does not use it, or a step before it starts means it does not run at all
+(no channel rendered, no term built). ``GaussianTrainer.step`` follows this
+plan and reports the stages it actually ran in ``info["stages"]``;
+``mlx3d info --plan`` prints it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..render import RenderPlan, plan_render
+
+
+OPTIONAL_STAGES = (
+    "antialias_compensation", "gaussian_normals", "bilateral_grid", "loss_dssim", "loss_depth_variance",
+    "loss_normal_consistency", "loss_bilateral_tv", "loss_opacity_l1", "loss_scale_l1", "thickness_clamp", "sgld_noise",
+)
+GEOMETRY_CHANNELS = ("depth", "depth2", "normals")
+
+
+@dataclass(frozen=True)
+class StepPlan:
+    """The stages of one training step, in the order they run."""
+
+    render: RenderPlan
+    colour_correction: tuple  # ('bilateral_grid',) or ()
+    losses: tuple  # loss terms: 'l1', 'dssim', 'depth_variance', 'normal_consistency', 'bilateral_tv', 'opacity_l1', 'scale_l1'
+    after_step: tuple  # 'thickness_clamp' (2dgs), 'sgld_noise' (mcmc)
+    events: tuple  # schedule events after this step (see trainer.events_at)
+
+    @property
+    def skipped(self) -> tuple:
+        """The optional stages and channels this step does not run, e.g. ``('antialias_compensation', 'channel_normals')``."""
+        ran = set(self.stages)
+        channels = {c.replace("_planes", "") for c in self.render.channels}
+        return tuple(s for s in OPTIONAL_STAGES if s not in ran) + tuple(f"channel_{c}" for c in GEOMETRY_CHANNELS if c not in channels)
+
+    @property
+    def stages(self) -> tuple:
+        return (
+            self.render.stages + self.colour_correction + tuple(f"loss_{name}" for name in self.losses)
+            + ("adam",) + self.after_step + self.events
+        )
+
+
+def step_plan(config, camera, sh_degree: int, step: int = 0, backend: str = "auto") -> StepPlan:
+    """The plan of training step ``step + 1`` (``step`` steps done) for ``config``
+    on ``camera`` with SH evaluated up to ``sh_degree`` (the active degree)."""
+    from .trainer import events_at
+
+    geometry = step >= config.geometry_from
+    depth_variance = geometry and config.lambda_2d_depth_variance > 0
+    normals = geometry and config.lambda_2d_normal_consistency > 0
+    render = plan_render(
+        camera, sh=np.zeros((0, (sh_degree + 1) ** 2, 3)), sh_degree=sh_degree, projection=config.projection, antialias=config.antialias,
+        render_depth=normals, backend=backend, render_depth_variance=depth_variance, render_normals=normals,
+        planar_depth=config.method == "2dgs",
+    )
+    losses = ["l1"]
+    if config.lambda_dssim > 0:
+        losses.append("dssim")
+    if depth_variance:
+        losses.append("depth_variance")
+    if normals:
+        losses.append("normal_consistency")
+    if config.bilateral_grid and config.lambda_bilateral_tv > 0:
+        losses.append("bilateral_tv")
+    if config.method == "mcmc":
+        if config.mcmc_opacity_reg > 0:
+            losses.append("opacity_l1")
+        if config.mcmc_scale_reg > 0:
+            losses.append("scale_l1")
+    after = []
+    if config.method == "2dgs":
+        after.append("thickness_clamp")
+    if config.method == "mcmc" and config.mcmc_noise_scale > 0:
+        after.append("sgld_noise")
+    return StepPlan(render, ("bilateral_grid",) if config.bilateral_grid else (), tuple(losses), tuple(after), events_at(config, step + 1))
+
