@@ -24,6 +24,7 @@ import numpy as np
 from ..errors import PlyFormatError
 from ..meshing.mesh import SurfaceMesh
 from .atomic import atomic_write
+from .ply import _check_counts, _read_header
 
 __all__ = ["write_mesh_ply", "read_mesh_ply"]
 
@@ -183,6 +184,16 @@ def read_mesh_ply(path: str | os.PathLike) -> SurfaceMesh:
     name = os.fspath(path)
     if not os.path.exists(name):
         raise FileNotFoundError(f"{name}: no such file")
+    # plyfile allocates every element's rows before reading them: check the
+    # declared counts against the file size first.
+    with open(name, "rb") as fh:
+        size = os.fstat(fh.fileno()).st_size
+        try:
+            header = _read_header(fh, name, size)
+        except PlyFormatError as exc:
+            problem = str(exc).removeprefix(f"{name}: ")
+            raise PlyFormatError(f"{name}: not a readable PLY file ({problem})") from exc
+    _check_counts(header, name, size, header.elements)
     try:
         try:  # triangles: memory-mapped fast path
             with open(name, "rb") as fh:
@@ -201,19 +212,30 @@ def read_mesh_ply(path: str | os.PathLike) -> SurfaceMesh:
         raise PlyFormatError(f"{name}: no 'face' element (not a mesh)")
     vdata = elements["vertex"].data
     fdata = elements["face"].data
+    vlists = [p.name for p in elements["vertex"].properties if isinstance(p, plyfile.PlyListProperty)
+              and p.name in ("x", "y", "z", "red", "green", "blue")]
+    if vlists:
+        what = f"property {vlists[0]} is a list" if len(vlists) == 1 else \
+            f"properties {', '.join(vlists)} are lists"
+        raise PlyFormatError(f"{name}: vertex {what}; scalars are required")
 
     vnames = vdata.dtype.names or ()
     missing = [a for a in "xyz" if a not in vnames]
     if missing:
         raise PlyFormatError(f"{name}: vertex element lacks properties {', '.join(missing)}")
-    vertices = np.stack([np.asarray(vdata[a], dtype=np.float64) for a in "xyz"], axis=1)
+    # Doubles beyond the float32 range become inf and signalling NaNs NaN: refused below.
+    with np.errstate(over="ignore", invalid="ignore"):
+        vertices = np.stack([np.asarray(vdata[a], dtype=np.float64) for a in "xyz"], axis=1)
+        vertices = vertices.astype(np.float32)
     if not np.isfinite(vertices).all():
         bad = int((~np.isfinite(vertices).all(axis=1)).sum())
-        raise PlyFormatError(f"{name}: {bad} vertices have NaN or Inf coordinates")
+        raise PlyFormatError(
+            f"{name}: {bad} vertices have NaN or Inf coordinates (or beyond the float32 range)")
     colors = None
     if all(a in vnames for a in ("red", "green", "blue")):
         cols = [np.asarray(vdata[a]) for a in ("red", "green", "blue")]
-        colors = np.stack([c.astype(np.float64) / _color_scale(c.dtype) for c in cols], axis=1)
+        with np.errstate(invalid="ignore"):  # signalling NaNs -> NaN: refused below
+            colors = np.stack([c.astype(np.float64) / _color_scale(c.dtype) for c in cols], axis=1)
         if not np.isfinite(colors).all():
             raise PlyFormatError(f"{name}: vertex colours contain NaN or Inf")
         colors = np.clip(colors, 0.0, 1.0)
@@ -224,5 +246,8 @@ def read_mesh_ply(path: str | os.PathLike) -> SurfaceMesh:
         raise PlyFormatError(
             f"{name}: face element has no 'vertex_indices' list (properties: {', '.join(fnames)})"
         )
+    if not isinstance(elements["face"].ply_property(prop), plyfile.PlyListProperty):
+        raise PlyFormatError(
+            f"{name}: face property {prop!r} is a scalar; a list of vertex indices is required")
     faces = _triangulate(fdata[prop], len(vertices), name)
-    return SurfaceMesh(vertices.astype(np.float32), faces, None if colors is None else colors.astype(np.float32))
+    return SurfaceMesh(vertices, faces, None if colors is None else colors.astype(np.float32))

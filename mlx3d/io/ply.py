@@ -532,7 +532,8 @@ def _from_structured(arr: np.ndarray, layout: _Layout):
     def cols(names: Sequence[str]) -> np.ndarray:
         if not names:
             return np.empty((n, 0), np.float32)
-        with np.errstate(over="ignore"):  # out-of-range doubles -> inf, reported later
+        # out-of-range doubles -> inf, signalling NaNs -> NaN: reported later
+        with np.errstate(over="ignore", invalid="ignore"):
             out = _rfn.structured_to_unstructured(arr[list(names)], dtype=np.float32)
         return np.ascontiguousarray(out, dtype=np.float32)
 
@@ -554,6 +555,37 @@ def _from_structured(arr: np.ndarray, layout: _Layout):
 
 def _struct_dtype(props: Iterable[_Prop], byte_order: str) -> np.dtype:
     return np.dtype([(p.name, byte_order + p.code) for p in props])
+
+
+def _min_row_bytes(element: _Element, fmt: str) -> int:
+    """The fewest bytes one row of ``element`` can take in a file of format ``fmt``.
+
+    ASCII: every value (a list's length included) is at least one character
+    followed by a space or the line end.  Binary: the scalars plus each list's
+    length field.  A row without properties counts as one byte (an empty line
+    in ASCII); a file cannot declare more such rows than it has bytes.
+    """
+    if not element.props:
+        return 1
+    if fmt == "ascii":
+        return 2 * len(element.props)
+    return sum(np.dtype(p.len_code if p.is_list else p.code).itemsize for p in element.props)
+
+
+def _check_counts(header: _Header, path: str, file_size: int, elements: Sequence[_Element]) -> None:
+    """Refuse element counts the file is too short to hold, before anything is allocated."""
+    avail = max(0, file_size - header.data_offset)
+    slack = 1 if header.fmt == "ascii" else 0  # the last line may lack its line end
+    need = 0
+    for e in elements:
+        row = _min_row_bytes(e, header.fmt)
+        need += e.count * row
+        if need > avail + slack:
+            raise PlyFormatError(
+                f"{path}: truncated file: element {e.name!r} declares {e.count} rows of at least "
+                f"{row} bytes each ({header.fmt}); the elements up to it need at least {need} bytes, "
+                f"but only {avail} bytes follow the header"
+            )
 
 
 def _read_with_plyfile(path: str) -> np.ndarray:
@@ -717,8 +749,10 @@ def read_splat_ply(
                     f"{path}: truncated file: expected {n} vertex rows, read {len(arr)}")
             arrays = _from_structured(arr, layout)
     elif order is None and layout.vertex.fixed_size:
+        _check_counts(header, path, file_size, header.elements[:layout.index + 1])
         arrays = _from_structured(_read_ascii(path, header, layout), layout)
     else:
+        _check_counts(header, path, file_size, header.elements)
         arrays = _from_structured(_read_with_plyfile(path), layout)
 
     nonfinite_rows = dropped = 0

@@ -12,10 +12,13 @@ camera z. Two depth models:
   tilted surface covered by discs renders a smooth, tilted depth map instead
   of steps. ``g`` uses the pinhole (or orthographic) Jacobian at the mean and
   is bounded at grazing angles (|cos| >= 0.1). Its compositing needs 3 depth
-  and 6 second-moment channels instead of 1 and 1.
+  channels instead of 1.
 
-The depth variance is computed about a reference depth (the mean visible
-depth unless given) to keep float32 cancellation small.
+The depth variance always uses the centres' depths (1 channel for E[z] when
+the depth itself is planar, 1 for E[z²]): the planar second moment would
+expand into terms of the size of the whole image's depth range and lose the
+variance to float32 cancellation. It is computed about a reference depth (the
+mean visible depth unless given) for the same reason.
 """
 
 from __future__ import annotations
@@ -32,7 +35,7 @@ def facing_normals(camera, means, quats) -> mx.array:
     ``GaussianModel.apply_2dgs_constraints``). "Facing" means a negative dot
     product with the viewing direction (from the centre to the mean, or the
     forward axis of an orthographic camera)."""
-    q = quats / mx.maximum(mx.linalg.norm(quats, axis=-1, keepdims=True), 1e-12)
+    q = quats / mx.sqrt(mx.sum(quats * quats, axis=-1, keepdims=True) + 1e-24)  # as quaternion_to_matrix: finite gradient at q = 0
     w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
     axis = mx.stack([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)], axis=-1)
     if camera.model == "orthographic":
@@ -51,7 +54,8 @@ def _depth_planes(camera, means, normals, depths, means2d):
     if camera.model == "orthographic":
         cos, length, factor = n_c[:, 2], 1.0, 1.0
     else:
-        ray = (means @ rot.T + mx.array(camera.viewmat[:3, 3], dtype=mx.float32)) / depths[:, None]  # (x/z, y/z, 1)
+        xy = (means @ rot[:2].T + mx.array(camera.viewmat[:2, 3], dtype=mx.float32)) / depths[:, None]
+        ray = mx.concatenate([xy, mx.ones_like(xy[:, :1])], axis=1)  # (x/z, y/z, 1)
         cos, length, factor = mx.sum(n_c * ray, axis=-1), mx.linalg.norm(ray, axis=-1), depths
     bound = MIN_COS * length
     cos = mx.where(mx.abs(cos) < bound, mx.where(cos < 0, -bound, bound), cos)
@@ -72,16 +76,15 @@ def pack(plan, camera, means, quats, proj, reference) -> list:
     blocks = []
     normals = facing_normals(camera, means, quats) if (plan.normals or plan.planar_depth) else None
     if plan.planar_depth:
-        a, g = _depth_planes(camera, means, normals, proj.depths, proj.means2d)
+        # culled Gaussians (never composited) may sit on the camera plane: keep their division finite
+        depths = mx.where(proj.radii > 0, proj.depths, 1.0)
+        a, g = _depth_planes(camera, means, normals, depths, proj.means2d)
         blocks.append(mx.concatenate([a[:, None], g], axis=1))
-        if plan.depth_variance:
-            b = a - reference
-            gu, gv = g[:, 0], g[:, 1]
-            blocks.append(mx.stack([b * b, 2 * b * gu, 2 * b * gv, gu * gu, 2 * gu * gv, gv * gv], axis=1))
     elif plan.depth:
         blocks.append(proj.depths[:, None])
-        if plan.depth_variance:
-            blocks.append(mx.square(proj.depths - reference)[:, None])
+    if plan.depth_variance:
+        centred = proj.depths - reference
+        blocks.append(mx.stack([centred, centred * centred], axis=1) if plan.planar_depth else (centred * centred)[:, None])
     if plan.normals:
         blocks.append(normals)
     return blocks
@@ -104,15 +107,15 @@ def unpack(plan, camera, accum, alpha, reference) -> dict:
             col += 1
         out["depth"] = mx.where(hit, depth, 0.0)
     if plan.depth_variance:
-        if plan.planar_depth:
-            m = [accum[..., col + k] for k in range(6)]
-            second = (m[0] + u * m[1] + v * m[2] + u * u * m[3] + u * v * m[4] + v * v * m[5]) * inv_alpha
-            col += 6
-        else:
-            second = accum[..., col] * inv_alpha
+        if plan.planar_depth:  # the centres' E[z - r] has its own channel
+            first = accum[..., col] * inv_alpha
             col += 1
-        # E[(z-r)²] - (E[z]-r)², both about the same reference r
-        out["depth_variance"] = mx.where(hit, mx.maximum(second - mx.square(depth - reference), 0.0), 0.0)
+        else:
+            first = depth - reference
+        second = accum[..., col] * inv_alpha
+        col += 1
+        # E[(z-r)²] - E[z-r]², both about the same reference r
+        out["depth_variance"] = mx.where(hit, mx.maximum(second - mx.square(first), 0.0), 0.0)
     if plan.normals:
         n = accum[..., col : col + 3]
         length = mx.sqrt(mx.sum(n * n, axis=-1, keepdims=True) + 1e-20)  # finite gradient at n = 0

@@ -78,13 +78,13 @@ class RenderPlan:
 
     @property
     def channels(self) -> tuple:
-        """Composited channel groups in order: rgb (3), depth (1, planes 3), depth2 (1, planes 6), normals (3)."""
+        """Composited channel groups in order: rgb (3), depth (1, planes 3), depth2 (1, with planar depth 2), normals (3)."""
         planes = "_planes" if self.planar_depth else ""
         out = ["rgb"]
         if self.depth:
             out.append("depth" + planes)
         if self.depth_variance:
-            out.append("depth2" + planes)
+            out.append("depth2")
         if self.normals:
             out.append("normals")
         return tuple(out)
@@ -178,8 +178,8 @@ def render_gaussians(
     - ``render_normals``: ``normals`` (H,W,3), the alpha-weighted world-space
       local z axes facing the camera (``facing_normals``), normalised to unit
       length;
-    - ``planar_depth``: depth and variance of each Gaussian's plane (a
-      surfel's) instead of its centre, see ``geometry_channels``.
+    - ``planar_depth``: the depth of each Gaussian's plane (a surfel's) instead
+      of its centre, see ``geometry_channels``.
 
     means2d_offset: optional (N,2) added to the projected 2D means. Pass zeros
     and differentiate w.r.t. it to get dL/d(means2d), the screen-space
