@@ -258,7 +258,9 @@ def write_attributes(cloud, arrays: SplatArrays) -> list[str]:
     return warnings
 
 
-def _srgb_to_linear(c: np.ndarray) -> np.ndarray:
+def srgb_to_linear(c) -> np.ndarray:
+    """Inverse sRGB transfer function (IEC 61966-2-1) of values clipped to [0, 1]."""
+    c = np.clip(np.asarray(c, dtype=np.float64), 0.0, 1.0)
     return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
 
 
@@ -269,7 +271,7 @@ def update_display(cloud, arrays: SplatArrays) -> None:
     # point radius: twice the geometric-mean standard deviation
     _set(cloud.attributes, "radius", "FLOAT", 2.0 * np.cbrt(np.prod(scales, axis=1)))
     rgb = np.clip(0.5 + C0 * arrays.sh_dc[:, 0, :].astype(np.float64), 0.0, 1.0)
-    _set(cloud.attributes, "splat_color", "FLOAT_COLOR", np.column_stack([_srgb_to_linear(rgb), opacity]))
+    _set(cloud.attributes, "splat_color", "FLOAT_COLOR", np.column_stack([srgb_to_linear(rgb), opacity]))
     quats = arrays.quats.astype(np.float64)
     quats /= np.maximum(np.linalg.norm(quats, axis=1, keepdims=True), 1e-30)
     _set(cloud.attributes, "rotation", "QUATERNION", quats)

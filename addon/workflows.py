@@ -34,6 +34,7 @@ from .splat_object import (
     object_matrix,
     read_splats,
     replace_splats,
+    srgb_to_linear,
 )
 
 # Axis presets: file axes -> Blender axes, exact 0/±1 matrices.
@@ -295,12 +296,6 @@ MESH_COLOR_ATTRIBUTE = "Color"
 
 class ExtractionCancelled(Exception):
     """Raised through the meshing progress callback to stop an extraction; nothing is added to the scene."""
-
-
-def srgb_to_linear(c) -> np.ndarray:
-    """Inverse sRGB transfer function (IEC 61966-2-1) of values clipped to [0, 1]."""
-    c = np.clip(np.asarray(c, dtype=np.float64), 0.0, 1.0)
-    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
 
 
 class MeshExtraction:

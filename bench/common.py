@@ -7,6 +7,24 @@ import resource
 import sys
 
 
+def rss_kib() -> tuple[int, int]:
+    """(current RSS, peak RSS) of this process in KiB (peak only, as both, where /proc is missing)."""
+    cur = peak = 0
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmRSS:"):
+                    cur = int(line.split()[1])
+                elif line.startswith("VmHWM:"):
+                    peak = int(line.split()[1])
+    except OSError:  # not Linux: ru_maxrss is in bytes on macOS
+        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        if sys.platform == "darwin":
+            peak //= 1024
+        cur = peak
+    return cur, peak
+
+
 def peak_rss_mb() -> float:
     """Peak resident memory of this process in MB (VmHWM on Linux, ru_maxrss elsewhere)."""
     try:

@@ -21,6 +21,8 @@ import sys
 import time
 from pathlib import Path
 
+from common import rss_kib  # bench/ is on sys.path when run as a script
+
 TARGET_S = 20.0
 GARDEN = Path("/work/shared/data/test_garden.npz")
 
@@ -28,26 +30,6 @@ GARDEN = Path("/work/shared/data/test_garden.npz")
 # --------------------------------------------------------------------------- #
 # child: one case
 # --------------------------------------------------------------------------- #
-def _rss_kib() -> tuple[int, int]:
-    """(current RSS, peak RSS) of this process in KiB."""
-    cur = peak = 0
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith("VmRSS:"):
-                    cur = int(line.split()[1])
-                elif line.startswith("VmHWM:"):
-                    peak = int(line.split()[1])
-    except OSError:  # not Linux: ru_maxrss is in bytes on macOS
-        import resource
-
-        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-        if sys.platform == "darwin":
-            peak //= 1024
-        cur = peak
-    return cur, peak
-
-
 def _load(source: str, n: int):
     import numpy as np
 
@@ -62,11 +44,11 @@ def run_case(source: str, n: int, k: int, threads: int) -> dict:
 
     native.core()  # import (and, for editable installs, rebuild) outside the timing
     points = _load(source, n)
-    rss_before, _ = _rss_kib()
+    rss_before, _ = rss_kib()
     t0 = time.perf_counter()
     d = neighbors.mean_knn_distance(points, k, num_threads=threads)
     wall = time.perf_counter() - t0
-    _, peak = _rss_kib()
+    _, peak = rss_kib()
     return {
         "source": source,
         "n": int(points.shape[0]),

@@ -21,25 +21,7 @@ import sys
 import time
 from pathlib import Path
 
-
-def _rss_kib() -> tuple[int, int]:
-    """(current RSS, peak RSS) of this process in KiB."""
-    cur = peak = 0
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith("VmRSS:"):
-                    cur = int(line.split()[1])
-                elif line.startswith("VmHWM:"):
-                    peak = int(line.split()[1])
-    except OSError:  # not Linux: ru_maxrss is in bytes on macOS
-        import resource
-
-        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-        if sys.platform == "darwin":
-            peak //= 1024
-        cur = peak
-    return cur, peak
+from common import rss_kib  # bench/ is on sys.path when run as a script
 
 
 def run_case(n: int, resolution: int) -> dict:
@@ -56,7 +38,7 @@ def run_case(n: int, resolution: int) -> dict:
     v = rng.standard_normal((n, 3))
     points = v / np.linalg.norm(v, axis=1, keepdims=True)
     weights = np.full(n, 4.0 * np.pi / n)
-    rss_before, _ = _rss_kib()
+    rss_before, _ = rss_kib()
     stamps = []
     t0 = time.perf_counter()
     mesh = reconstruct_surface(
@@ -64,7 +46,7 @@ def run_case(n: int, resolution: int) -> dict:
         progress=lambda done, total: stamps.append(time.perf_counter()),
     )
     wall = time.perf_counter() - t0
-    _, peak = _rss_kib()
+    _, peak = rss_kib()
     stages = {name: stamps[i + 1] - stamps[i] for i, name in enumerate(STAGES)}
     return {
         "n": n,

@@ -32,13 +32,15 @@ from ..transforms import quaternion_to_matrix
 # 3-sigma extent and the minimum eigenvalue floor used for radii (3DGS: 0.1)
 SIGMA_EXTENT = 3.0
 _EIGEN_FLOOR = 0.1
+# largest radius stored (pixels): far beyond any image, and exact in float32 and int32
+_MAX_RADIUS = float(2**30)
 
 
 class Projection(NamedTuple):
     """Image-space Gaussians. Shapes for N Gaussians:
 
     means2d (N,2) pixels; conics (N,3) = (a, b, c) of Σ2D⁻¹ = [[a,b],[b,c]];
-    radii (N,) int32 pixels (0 = culled); depths (N,) camera z;
+    radii (N,) int32 pixels (0 = culled, at most 2**30); depths (N,) camera z;
     compensation (N,) opacity factor (1 without antialias).
     """
 
@@ -60,6 +62,29 @@ def _camera_arrays(camera):
     return view[:3, :3], view[:3, 3]
 
 
+@mx.custom_function
+def _inverse_2x2(a, b, c, det):
+    """(N,3) conics (A, B, C) = (c, -b, a) / det of the symmetric [[a, b], [b, c]] with determinant ``det``.
+
+    The gradient is written with the conic itself, dK = -K dΣ K, instead of differentiating the
+    quotients: for a very wide Gaussian (Σ ≳ 1e12 px²) the quotient rule overflows float32 (det²,
+    cotangent · c) and gives NaN or wrong values, while -K G K stays representable. ``det`` stands
+    for a·c - b² (possibly computed more accurately) and gets no gradient of its own.
+    """
+    return mx.stack([c / det, -b / det, a / det], axis=-1)
+
+
+@_inverse_2x2.vjp
+def _inverse_2x2_vjp(primals, cotangent, output):
+    A, B, C = output[:, 0], output[:, 1], output[:, 2]
+    ga, gb, gc = cotangent[:, 0], cotangent[:, 1], cotangent[:, 2]
+    # K = [[A, B], [B, C]], dK = -K dΣ K with dΣ = E11 (a), E12 + E21 (b), E22 (c)
+    da = -((ga * A) * A + (gb * A) * B + (gc * B) * B)
+    db = -(2.0 * (ga * A) * B + gb * (A * C + B * B) + 2.0 * (gc * B) * C)
+    dc = -((ga * B) * B + (gb * B) * C + (gc * C) * C)
+    return da, db, dc, mx.zeros_like(primals[3])
+
+
 def _finish(camera, means2d, cov2d, depths, valid, blur, antialias, det_orig=None) -> Projection:
     """Blur, invert and size the 2D covariances ((N,) arrays a, b, c of [[a, b], [b, c]]); cull; build the result.
 
@@ -67,6 +92,12 @@ def _finish(camera, means2d, cov2d, depths, valid, blur, antialias, det_orig=Non
     accurate form than a·c - b² (then the blurred one is det_orig + blur·(a + c) + blur²).
     """
     a, b, c = cov2d
+    # A covariance that overflowed float32 (UT sigma points sent ~1e19 px apart by a distorted lens
+    # far outside its image) is culled, and replaced first: its inf would otherwise meet the zero
+    # cotangent of the masks below in the backward pass (0 · inf = NaN).
+    fits = mx.stop_gradient(mx.isfinite(a) & mx.isfinite(b) & mx.isfinite(c))
+    a, b, c = mx.where(fits, a, 1.0), mx.where(fits, b, 0.0), mx.where(fits, c, 1.0)
+    valid = valid & fits
     if det_orig is None:
         det_orig = a * c - b * b
         a, c = a + blur, c + blur
@@ -77,10 +108,18 @@ def _finish(camera, means2d, cov2d, depths, valid, blur, antialias, det_orig=Non
     valid = valid & (det > 0) & (a > 0) & mx.isfinite(det)  # positive definite
     safe_det = mx.where(valid, det, 1.0)
     if antialias:
-        compensation = mx.where(valid, mx.sqrt(mx.maximum(det_orig / safe_det, 0.0)), 0.0)
+        # det_orig masked like det, both divided by the (constant) det first so that the quotient's
+        # gradient never squares a huge det (float32 overflow, then NaN), and sqrt only where the
+        # ratio is positive: an inf or NaN det_orig of a culled Gaussian, or the infinite slope of
+        # sqrt at 0 for a flat (rank-1 2D) one, would otherwise reach the parameters as 0 · inf = NaN
+        unit = mx.stop_gradient(safe_det)
+        ratio = (mx.where(valid, det_orig, 0.0) / unit) / (safe_det / unit)
+        live = valid & (ratio > 0)
+        compensation = mx.where(live, mx.sqrt(mx.where(live, ratio, 1.0)), 0.0)
     else:
         compensation = mx.where(valid, 1.0, 0.0)
-    conics = mx.stack([c / safe_det, -b / safe_det, a / safe_det], axis=-1)
+    # culled rows invert the identity: the VJP multiplies by the conic, which must stay finite
+    conics = _inverse_2x2(mx.where(valid, a, 1.0), mx.where(valid, b, 0.0), mx.where(valid, c, 1.0), safe_det)
     conics = mx.where(valid[:, None], conics, 0.0)
     # radius from the larger eigenvalue (no gradient: it only selects tiles)
     mid = mx.stop_gradient(0.5 * (a + c))
@@ -89,7 +128,8 @@ def _finish(camera, means2d, cov2d, depths, valid, blur, antialias, det_orig=Non
     m2 = mx.stop_gradient(means2d)
     on_screen = (m2[:, 0] + radius > 0) & (m2[:, 0] - radius < camera.width) & (m2[:, 1] + radius > 0) & (m2[:, 1] - radius < camera.height)
     valid = valid & on_screen & mx.isfinite(radius)
-    radii = mx.where(valid, radius, 0.0).astype(mx.int32)
+    # a finite radius can still exceed int32 (UT through a strongly distorted lens): clamp before the cast
+    radii = mx.where(valid, mx.minimum(radius, _MAX_RADIUS), 0.0).astype(mx.int32)
     means2d = mx.where(valid[:, None], means2d, 0.0)
     return Projection(means2d, conics, radii, depths, compensation)
 
