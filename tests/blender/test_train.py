@@ -320,3 +320,15 @@ def test_mcmc_is_offered_and_trains(extension, clean_scene, dataset):
     session.run()
     obj, _ = session.finish()
     assert 2000 < len(obj.data.points) <= 2500  # grew towards the cap
+
+
+def test_2dgs_is_offered_and_trains_flat_discs(extension, clean_scene, dataset):
+    train = extension.addon.train
+    assert "2dgs" in [item[0] for item in train.METHOD_ITEMS]
+    session = train.TrainSession(dataset, steps=20, method="2dgs", geometry_from=5)
+    session.run()
+    obj, _ = session.finish()
+    arrays, _ = extension.addon.splat_object.read_splats(obj)
+    limit = session.trainer.max_thickness
+    assert np.exp(arrays.scales[:, 2]).max() <= limit * (1 + 1e-5)  # every splat a disc
+    assert obj["mlx3d_training"]["method"] == "2dgs"
