@@ -284,7 +284,8 @@ def test_geometry_channels_are_rendered_only_when_their_losses_are_on(monkeypatc
 
 def test_2dgs_training_fits_the_images_and_reduces_the_geometry_losses():
     model, cams, targets = surfel_problem(2)
-    trainer = GaussianTrainer(model, TrainerConfig(method="2dgs", steps=200, densify_from=10_000, geometry_from=50), scene_extent=3.0)
+    config = TrainerConfig(method="2dgs", steps=200, densify_from=10_000, geometry_from=50, lambda_2d_depth_variance=100.0)  # strong, to see it in 150 steps
+    trainer = GaussianTrainer(model, config, scene_extent=3.0)
     infos = [trainer.step(cams[i % 5], targets[i % 5]) for i in range(200)]
     assert all(math.isfinite(i["loss"]) for i in infos)
     assert np.mean([i["psnr"] for i in infos[-5:]]) > np.mean([i["psnr"] for i in infos[:5]]) + 3

@@ -22,6 +22,13 @@ def test_events_fire_on_the_right_steps():
     assert fired["reset_opacity"] == [3000, 6000, 9000, 12000, 15000]
 
 
+def test_no_opacity_reset_in_the_last_steps_of_a_run():
+    for steps, resets in ((3000, []), (3500, [3000]), (7000, [3000, 6000]), (6400, [3000])):
+        c = TrainerConfig(steps=steps)
+        assert [s for s in range(1, steps + 1) if "reset_opacity" in events_at(c, s)] == resets, steps
+    assert "reset_opacity" in events_at(TrainerConfig(steps=3000, reset_recovery=0), 3000)
+
+
 def test_means_learning_rate_decays_log_linearly_with_scene_extent():
     model = GaussianModel.from_points(np.random.default_rng(0).normal(size=(20, 3)))
     trainer = GaussianTrainer(model, TrainerConfig(steps=100), scene_extent=3.0)
@@ -148,7 +155,7 @@ def test_training_reduces_the_loss():
 
 def test_densification_fires_inside_training():
     model, cams, targets = small_problem(1)
-    config = TrainerConfig(steps=20, densify_from=2, densify_every=4, densify_until=20, opacity_reset_every=10, grad_threshold=1e-7, sh_degree_interval=5)
+    config = TrainerConfig(steps=20, densify_from=2, densify_every=4, densify_until=20, opacity_reset_every=10, reset_recovery=5, grad_threshold=1e-7, sh_degree_interval=5)
     trainer = GaussianTrainer(model, config, scene_extent=3.0)
     infos = [trainer.step(cams[i % 6], targets[i % 6]) for i in range(12)]
     assert [i["step"] for i in infos if "densify" in i] == [4, 8, 12]

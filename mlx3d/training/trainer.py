@@ -66,6 +66,7 @@ class TrainerConfig:
     densify_until: int = 15_000
     densify_every: int = 100
     opacity_reset_every: int = 3000
+    reset_recovery: int = 500  # no opacity reset in the last this many steps: the model needs them to recover
     grad_threshold: float = 2e-4
     percent_dense: float = 0.01
     prune_opacity: float = 0.005
@@ -126,7 +127,7 @@ def events_at(config: TrainerConfig, step: int) -> tuple:
             return tuple(events)
         if step % config.densify_every == 0:
             events.append("densify")
-        if config.opacity_reset_every and step % config.opacity_reset_every == 0:
+        if config.opacity_reset_every and step % config.opacity_reset_every == 0 and step <= config.steps - config.reset_recovery:
             events.append("reset_opacity")
     return tuple(events)
 
