@@ -6,7 +6,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.mlx3d-installed
 
-.PHONY: demo test bench install extension
+.PHONY: demo test bench report install extension
 
 # `make demo` runs the Blender extension as a user would: it builds the extension
 # zip for this machine and the venv's Python (build/demo-extension/), installs and
@@ -42,6 +42,12 @@ bench: $(STAMP)
 	$(PY) bench/knn.py
 	$(PY) bench/from_points.py
 	$(PY) bench/blender_io.py
+
+# `make report` measures what accuracy costs on this machine (the full run of
+# `mlx3d bench accuracy`, under an hour on 2 cores) and writes the report and its
+# plots into docs/accuracy/ (the committed copy comes from this target).
+report: $(STAMP)
+	$(VENV)/bin/mlx3d bench accuracy --out docs/accuracy
 
 install: $(STAMP)
 

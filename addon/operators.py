@@ -12,7 +12,7 @@ import bpy
 from bpy.props import BoolProperty, CollectionProperty, EnumProperty, FloatProperty, FloatVectorProperty, IntProperty, IntVectorProperty, StringProperty
 from bpy_extras.io_utils import ExportHelper, ImportHelper
 
-from . import capture, ellipsoids, train, workflows
+from . import benchmark, capture, ellipsoids, train, workflows
 from .splat_object import is_splat_object
 
 # Folder settings that may start with "//" (relative to the .blend); Blender 5.0 asks for the flag.
@@ -276,6 +276,17 @@ class MLX3D_OT_render(bpy.types.Operator):
 
 
 
+def _select_only(context, obj):
+    """Make ``obj`` the only selected and the active object."""
+    context.view_layer.update()  # a newly linked object has no base in the view layer before this
+    for other in context.view_layer.objects:
+        if other is not None and other.select_get():
+            other.select_set(False)
+    if obj.name in context.view_layer.objects:
+        obj.select_set(True)
+        context.view_layer.objects.active = obj
+
+
 class _ModalWork:
     """Plumbing of operators that do one unit of work per timer tick: the timer,
     status-bar progress, header text, and handing the session back at the end."""
@@ -460,22 +471,13 @@ class MLX3D_OT_train(_ModalWork, bpy.types.Operator):
             collection=context.collection,
         )
 
-    def _select(self, context, obj):
-        """Make ``obj`` the only selected and the active object."""
-        context.view_layer.update()  # a newly linked object has no base in the view layer before this
-        for other in context.view_layer.objects:
-            if other is not None and other.select_get():
-                other.select_set(False)
-        if obj.name in context.view_layer.objects:
-            obj.select_set(True)
-            context.view_layer.objects.active = obj
 
     def _report_end(self, context, obj, messages, error):
         if error is not None:
             self.report({"ERROR"}, messages[0])
             messages = messages[1:]
         _report_all(self, messages)
-        self._select(context, obj)
+        _select_only(context, obj)
 
     def execute(self, context):
         if context.mode != "OBJECT":
@@ -506,7 +508,7 @@ class MLX3D_OT_train(_ModalWork, bpy.types.Operator):
             bpy.ops.object.mode_set(mode="OBJECT")
         try:
             self._session = self._new_session(context)
-            self._select(context, self._session.update_object())  # the initial Gaussians, shown at once
+            _select_only(context, self._session.update_object())  # the initial Gaussians, shown at once
         except (ValueError, OSError, RuntimeError) as exc:
             self._session = None
             self.report({"ERROR"}, str(exc))
@@ -581,14 +583,6 @@ class MLX3D_OT_extract_mesh(_ModalWork, bpy.types.Operator):
         return workflows.MeshExtraction(context.active_object, resolution=self.resolution, min_opacity=self.min_opacity,
                                         max_points=self.max_points, trim=self.trim)
 
-    def _select(self, context, obj):
-        context.view_layer.update()
-        for other in context.view_layer.objects:
-            if other is not None and other.select_get():
-                other.select_set(False)
-        if obj.name in context.view_layer.objects:
-            obj.select_set(True)
-            context.view_layer.objects.active = obj
 
     def _add(self, context, job):
         try:
@@ -599,7 +593,7 @@ class MLX3D_OT_extract_mesh(_ModalWork, bpy.types.Operator):
         except (ValueError, OSError, RuntimeError, MemoryError) as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
-        self._select(context, obj)
+        _select_only(context, obj)
         _report_all(self, messages)
         return {"FINISHED"}
 
@@ -656,6 +650,92 @@ class MLX3D_OT_extract_mesh(_ModalWork, bpy.types.Operator):
             self._stop(context)
 
 
+class MLX3D_OT_benchmark(_ModalWork, bpy.types.Operator):
+    """Measure on this machine what accuracy costs: train and render a fixed set of configurations on a built-in scene and write a markdown report with plots. Runs in a separate process; Esc cancels and writes nothing"""
+
+    bl_idname = "mlx3d.benchmark"
+    bl_label = "Benchmark this machine"
+    bl_options = {"REGISTER"}
+
+    directory: StringProperty(name="Folder", subtype="DIR_PATH", default="", options=BLEND_RELATIVE_PATH,
+                              description="Output folder of the report (empty: mlx3d_accuracy next to the .blend file, or in the temporary folder)")
+    full: BoolProperty(name="Full run", default=False, description="The full benchmark (under an hour on 2 cores) instead of the quick one (a few minutes)")
+    tiny: BoolProperty(default=False, options={"HIDDEN", "SKIP_SAVE"})  # seconds-long sizes, for tests
+
+    def _new_job(self):
+        folder = bpy.path.abspath(self.directory) if self.directory else benchmark.default_folder(bpy.data.filepath)
+        return benchmark.BenchmarkJob(folder, "tiny" if self.tiny else "full" if self.full else "quick")
+
+    def _show(self, context, path):
+        """Open the report in Blender's text editor (in a Text Editor area when there is one) and say where it is."""
+        text = bpy.data.texts.load(path)
+        for area in context.screen.areas if context.screen else ():
+            if area.type == "TEXT_EDITOR":
+                area.spaces.active.text = text
+        print(f"mlx3d benchmark report: {path}")
+        self.report({"INFO"}, f"benchmark report: {path} (open in the Text Editor as '{text.name}'; the PNG plots are next to it)")
+        return {"FINISHED"}
+
+    def execute(self, context):
+        try:
+            job = self._new_job()
+        except benchmark.BenchmarkError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        try:
+            with _Progress(context) as progress:
+                path = job.run(progress=lambda done, total, status: progress(done, total))
+        except (benchmark.BenchmarkError, OSError) as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        except KeyboardInterrupt:
+            job.cancel()
+            self.report({"INFO"}, "the benchmark was cancelled; nothing was written")
+            return {"CANCELLED"}
+        return self._show(context, path)
+
+    def invoke(self, context, event):
+        if context.window is None or bpy.app.background:  # no event loop: run to the end now
+            return self.execute(context)
+        try:
+            self._session = self._new_job()
+            self._session.start()
+        except (benchmark.BenchmarkError, OSError) as exc:
+            self._session = None
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        return self._start_modal(context, 1000, "Benchmarking this machine: starting (Esc to cancel)")
+
+    def modal(self, context, event):
+        job = self._session
+        if job is None:
+            return {"CANCELLED"}
+        if event.type == "ESC" and event.value == "PRESS":
+            job.cancel()
+            self._stop(context)
+            self.report({"INFO"}, "the benchmark was cancelled; nothing was written")
+            return {"CANCELLED"}
+        if event.type != "TIMER":
+            return {"PASS_THROUGH"}  # Blender stays usable while the benchmark runs in its own process
+        if job.running:
+            context.window_manager.progress_update(job.progress)
+            self._header(f"Benchmarking this machine: {job.progress / 10:.0f}%, {job.status} (Esc to cancel)")
+            return {"RUNNING_MODAL"}
+        self._stop(context)
+        try:
+            path = job.finish()
+        except benchmark.BenchmarkError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        return self._show(context, path)
+
+    def cancel(self, context):
+        # Blender ends the operator (a file is loaded, the window closes): stop the benchmark.
+        if self._session is not None:
+            self._session.cancel()
+            self._stop(context)
+
+
 class MLX3D_FH_gaussian_splat_ply(bpy.types.FileHandler):
     """Drag and drop .ply files onto the 3D viewport to import them as splats"""
 
@@ -690,5 +770,6 @@ CLASSES = (
     MLX3D_OT_capture_dataset,
     MLX3D_OT_train,
     MLX3D_OT_extract_mesh,
+    MLX3D_OT_benchmark,
     MLX3D_FH_gaussian_splat_ply,
 )

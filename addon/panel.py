@@ -43,6 +43,9 @@ class MLX3D_PG_settings(bpy.types.PropertyGroup):
     train_sh_degree: IntProperty(name="SH degree", default=3, min=0, max=3, description="Spherical-harmonics degree of the view-dependent colour")
     train_background: EnumProperty(name="Background", items=train.BACKGROUND_ITEMS, default="black")
     train_update_every: IntProperty(name="Update every", default=100, min=1, description="Training steps between updates of the splat object")
+    bench_dir: bpy.props.StringProperty(name="Folder", subtype="DIR_PATH", default="", options=operators.BLEND_RELATIVE_PATH,
+                                        description="Output folder of the benchmark report (empty: mlx3d_accuracy next to the .blend file, or in the temporary folder)")
+    bench_full: BoolProperty(name="Full run", default=False, description="The full benchmark (under an hour on 2 cores) instead of the quick one (a few minutes)")
 
 
 _info_cache: dict = {}
@@ -177,4 +180,19 @@ class VIEW3D_PT_mlx3d_train(bpy.types.Panel):
         op.update_every = settings.train_update_every
 
 
-CLASSES = (MLX3D_PG_settings, VIEW3D_PT_mlx3d_splats, VIEW3D_PT_mlx3d_train)
+class VIEW3D_PT_mlx3d_benchmark(bpy.types.Panel):
+    """Measure what accuracy costs in time and memory on this machine"""
+
+    bl_label = "Benchmark"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "Splats"
+    bl_parent_id = "VIEW3D_PT_mlx3d_splats"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    def draw(self, context):
+        _section(self.layout, "What accuracy costs here", context.scene.mlx3d_splats, operators.MLX3D_OT_benchmark, "TIME",
+                 {"directory": "bench_dir", "full": "bench_full"})
+
+
+CLASSES = (MLX3D_PG_settings, VIEW3D_PT_mlx3d_splats, VIEW3D_PT_mlx3d_train, VIEW3D_PT_mlx3d_benchmark)

@@ -1,4 +1,4 @@
-"""The ``mlx3d`` command line: inspect, compact, clean, transform, merge, train and evaluate.
+"""The ``mlx3d`` command line: inspect, compact, clean, transform, merge, train, evaluate and benchmark.
 
 Exit codes: 0 success, 1 bad input or failed work (the message says what),
 2 bad command-line usage, 130 cancelled with Ctrl+C. Outputs are written
@@ -296,6 +296,39 @@ def cmd_eval(args) -> None:
         print(f"side-by-side renders and metrics.json in {args.out}")
 
 
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt
+
+
+def cmd_bench(args) -> None:
+    import signal
+
+    from .report.accuracy import MODES, run_accuracy
+
+    # SIGINT and SIGTERM cancel like Ctrl+C (nothing is written), also when started with SIGINT ignored
+    # (a background job, or a child of Blender: the add-on stops the benchmark this way).
+    if _in_main_thread():
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        signal.signal(signal.SIGTERM, _interrupt)
+    mode = "tiny" if args.tiny else "quick" if args.quick else "full"
+    line = ProgressLine(f"bench {args.benchmark}")
+
+    def progress(done: int, total: int, what: str) -> None:
+        line.label = f"bench {args.benchmark} [{what}]"
+        line(done, total)
+
+    print(f"bench {args.benchmark}: {MODES[mode].describe()}; writing into {args.out}", file=sys.stderr, flush=True)
+    result = run_accuracy(args.out, mode, seed=args.seed, progress=progress, keep_data=args.keep_data)
+    seconds = result["results"]["timings"]["total"]
+    print(f"bench {args.benchmark}: finished in {seconds / 60:.1f} min; report in {result['report']} with {len(result['paths']) - 1} more files")
+
+
+def _in_main_thread() -> bool:
+    import threading
+
+    return threading.current_thread() is threading.main_thread()
+
+
 def cmd_demo(args) -> None:
     from .demo import run_demo
 
@@ -392,6 +425,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", metavar="DIR", help="write renders/*.png (ground truth | render) and metrics.json here")
     p.add_argument("--background", choices=("black", "white"), default="black")
     p.add_argument("--factor", type=float, default=1)
+
+    p = add("bench", cmd_bench, "Measure on this machine what accuracy costs: training and rendering configurations on the built-in scene, written as a markdown report with plots.")
+    p.add_argument("benchmark", choices=("accuracy",), help="accuracy: held-out PSNR/SSIM against time and memory for training and rendering settings")
+    p.add_argument("--quick", action="store_true", help="small sizes (a few minutes on 2 cores) instead of the full run (under an hour)")
+    p.add_argument("--out", default=os.path.join("bench", "out", "accuracy"), metavar="DIR", help="output folder for README.md, the PNG plots and results.json (default bench/out/accuracy)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the scene, the initial points and training (default 0)")
+    p.add_argument("--keep-data", action="store_true", help="keep the rendered dataset in DIR/dataset (default: a temporary folder)")
+    p.add_argument("--tiny", action="store_true", help=argparse.SUPPRESS)  # seconds-long run for tests
 
     p = add("demo", cmd_demo, "Run the built-in end-to-end demo on a generated scene.")
     p.add_argument("--out", default="demo_out", metavar="DIR", help="output folder (default demo_out)")

@@ -215,7 +215,7 @@ class _OperatorState:
 
     def __init__(self, cls, job):
         self._session, self._timer, self._area, self.reports = job, None, None, []
-        for name in ("_header", "_stop", "_add", "_select"):
+        for name in ("_header", "_stop", "_add"):
             setattr(self, name, types.MethodType(getattr(cls, name), self))
 
     def report(self, level, message):

@@ -78,7 +78,7 @@ class _OperatorState:
     def __init__(self, cls, session, tick_seconds=0.05):
         self._session, self._timer, self._area, self.reports = session, None, None, []
         self.TICK_SECONDS = tick_seconds
-        for name in ("_end", "_stop", "_header", "_redraw", "_report_end", "_select"):
+        for name in ("_end", "_stop", "_header", "_redraw", "_report_end"):
             setattr(self, name, types.MethodType(getattr(cls, name), self))
 
     def report(self, level, message):
