@@ -21,7 +21,7 @@ import sys
 import time
 from pathlib import Path
 
-from common import rss_kib  # bench/ is on sys.path when run as a script
+from common import emit, rss_kib  # bench/ is on sys.path when run as a script
 
 TARGET_S = 20.0
 GARDEN = Path("/work/shared/data/test_garden.npz")
@@ -125,14 +125,7 @@ def main(argv: list[str] | None = None) -> int:
     header = (f"mean_knn_distance, k={args.k}, all points as queries (self excluded); "
               f"{os.cpu_count()} CPUs ({cpu}), Python {platform.python_version()}; "
               f"threads 0 = all; wall time includes the tree build.")
-    lines = _table(rows)
-    print(header)
-    print("\n".join(lines))
-    if args.markdown:
-        path = Path(args.markdown)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text("# k-NN benchmark\n\n" + header + "\n\n" + "\n".join(lines) + "\n")
-        print(f"wrote {path}", file=sys.stderr)
+    emit(header + "\n\n" + "\n".join(_table(rows)) + "\n", args.markdown)
     return 0
 
 

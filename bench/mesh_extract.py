@@ -19,9 +19,8 @@ import platform
 import subprocess
 import sys
 import time
-from pathlib import Path
 
-from common import rss_kib  # bench/ is on sys.path when run as a script
+from common import emit, rss_kib  # bench/ is on sys.path when run as a script
 
 
 def run_case(n: int, resolution: int) -> dict:
@@ -108,14 +107,7 @@ def main(argv: list[str] | None = None) -> int:
     header = (f"reconstruct_surface on N random unit-sphere samples (outward normals, equal "
               f"areas, default trim, no colours); {os.cpu_count()} CPUs ({cpu}), Python "
               f"{platform.python_version()}; RSS before = after imports and input generation.")
-    lines = _table(rows)
-    print(header)
-    print("\n".join(lines))
-    if args.markdown:
-        path = Path(args.markdown)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text("# Mesh extraction benchmark\n\n" + header + "\n\n" + "\n".join(lines) + "\n")
-        print(f"wrote {path}", file=sys.stderr)
+    emit(header + "\n\n" + "\n".join(_table(rows)) + "\n", args.markdown)
     return 0
 
 

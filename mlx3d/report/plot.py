@@ -149,6 +149,17 @@ def _text_size(draw, text: str, f) -> tuple:
     return box[2] - box[0], box[3] - box[1]
 
 
+def _xlabel(draw, xlabel: str, note: str | None, left, right, bottom, s: int, label_font, tick_font, small) -> tuple:
+    """Draw the x-axis label centred under the plot, and the grey ``note`` under it; returns the label's size."""
+    w, h = _text_size(draw, xlabel, label_font)
+    xlabel_y = bottom + 14 * s + _text_size(draw, "0", tick_font)[1] + 10 * s
+    draw.text(((left + right) / 2 - w / 2, xlabel_y), xlabel, font=label_font, fill=INK)
+    if note:
+        nw, _ = _text_size(draw, note, small)
+        draw.text(((left + right) / 2 - nw / 2, xlabel_y + h + 12 * s), note, font=small, fill=(110, 110, 110))
+    return w, h
+
+
 def _range(values: list, log: bool, pad: float = 0.05) -> tuple:
     finite = [v for v in values if math.isfinite(v) and (v > 0 or not log)]
     if not finite:
@@ -259,12 +270,7 @@ def plot(
     draw.rectangle([left, top, right, bottom], outline=INK, width=s)
 
     # Axis labels (the y label rotated).
-    w, h = _text_size(draw, xlabel, label_font)
-    xlabel_y = bottom + 14 * s + _text_size(draw, "0", tick_font)[1] + 10 * s
-    draw.text(((left + right) / 2 - w / 2, xlabel_y), xlabel, font=label_font, fill=INK)
-    if note:
-        nw, _ = _text_size(draw, note, small)
-        draw.text(((left + right) / 2 - nw / 2, xlabel_y + h + 12 * s), note, font=small, fill=(110, 110, 110))
+    w, h = _xlabel(draw, xlabel, note, left, right, bottom, s, label_font, tick_font, small)
     w, h = _text_size(draw, ylabel, label_font)
     label = Image.new("RGB", (w + 8 * s, h + 12 * s), BACKGROUND)
     ImageDraw.Draw(label).text((4 * s, 2 * s), ylabel, font=label_font, fill=INK)
@@ -388,12 +394,7 @@ def barh(
             draw.rectangle([a, y + k * bar_h, max(b, a + s), y + (k + 1) * bar_h - s], fill=PALETTE[k % len(PALETTE)])
     draw.line([(px(0.0), top), (px(0.0), bottom)], fill=INK, width=s)
     draw.rectangle([left, top, right, bottom], outline=INK, width=s)
-    w, h = _text_size(draw, xlabel, label_font)
-    xlabel_y = bottom + 14 * s + _text_size(draw, "0", tick_font)[1] + 10 * s
-    draw.text(((left + right) / 2 - w / 2, xlabel_y), xlabel, font=label_font, fill=INK)
-    if note:
-        nw, _ = _text_size(draw, note, small)
-        draw.text(((left + right) / 2 - nw / 2, xlabel_y + h + 12 * s), note, font=small, fill=(110, 110, 110))
+    w, h = _xlabel(draw, xlabel, note, left, right, bottom, s, label_font, tick_font, small)
     line_h = _text_size(draw, "Ag", tick_font)[1] + 12 * s
     lx = right + 16 * s
     draw.rectangle([lx, top, width - 8 * s, top + line_h * len(groups) + 12 * s], outline=(180, 180, 180), width=s)
