@@ -178,6 +178,39 @@ class VIEW3D_PT_mlx3d_train(bpy.types.Panel):
         op.directory, op.method, op.steps = settings.capture_dir, settings.train_method, settings.train_steps
         op.max_gaussians, op.sh_degree, op.background = settings.train_max_gaussians, settings.train_sh_degree, settings.train_background
         op.update_every = settings.train_update_every
+        stages, skipped, step = _planned_stages(context.scene, settings)
+        box = self.layout.box()
+        box.label(text=f"A step ({step:,}) runs:", icon="SEQ_STRIP_DUPLICATE")
+        col = box.column(align=True)
+        col.scale_y = 0.8
+        for name in stages:
+            col.label(text=name)
+        box.label(text="Skipped: " + (", ".join(skipped) or "nothing"))
+
+
+_plan_cache: dict = {}
+
+
+def _planned_stages(scene, settings) -> tuple:
+    """(stages, skipped, step) of a training step with the panel's settings (``mlx3d.training.plan``):
+    the first step with every scheduled effect on, seen from the scene camera (a pinhole one without it)."""
+    from mlx3d.cameras import Camera
+    from mlx3d.training import TrainerConfig
+    from mlx3d.training.plan import step_plan
+
+    from .camera import camera_from_blender
+
+    key = (settings.train_method, settings.train_steps, settings.train_sh_degree, scene.camera.name if scene.camera else None,
+           scene.camera.data.type if scene.camera else None)
+    if key not in _plan_cache:
+        config = TrainerConfig(method=settings.train_method, steps=settings.train_steps)
+        camera = camera_from_blender(scene.camera, scene) if scene.camera else Camera.look_at(eye=(0, -3, 1), at=(0, 0, 0), width=64, height=64, fov=50.0)
+        step = min(settings.train_steps - 1, max(config.geometry_from, config.densify_from, config.sh_degree_interval * settings.train_sh_degree))
+        degree = min(step // config.sh_degree_interval, settings.train_sh_degree) if config.sh_degree_interval else settings.train_sh_degree
+        plan = step_plan(config, camera, degree, step)
+        _plan_cache.clear()
+        _plan_cache[key] = (plan.stages, plan.skipped, step + 1)
+    return _plan_cache[key]
 
 
 class VIEW3D_PT_mlx3d_benchmark(bpy.types.Panel):

@@ -332,3 +332,25 @@ def test_2dgs_is_offered_and_trains_flat_discs(extension, clean_scene, dataset):
     limit = session.trainer.max_thickness
     assert np.exp(arrays.scales[:, 2]).max() <= limit * (1 + 1e-5)  # every splat a disc
     assert obj["mlx3d_training"]["method"] == "2dgs"
+
+
+def test_panel_train_section_shows_the_stages_a_step_runs(extension, clean_scene):
+    from mlx3d.cameras import Camera
+    from mlx3d.training import TrainerConfig
+    from mlx3d.training.plan import step_plan
+
+    settings = clean_scene.mlx3d_splats
+    panel = extension.addon.panel.VIEW3D_PT_mlx3d_train
+    labels = {}
+    for method in ("vanilla", "2dgs"):
+        settings.train_method, settings.train_steps = method, 7000
+        log = []
+        panel.draw(SimpleNamespace(layout=RecordingLayout(log)), SimpleNamespace(scene=clean_scene, active_object=None))
+        labels[method] = [entry[1] for entry in log if entry[0] == "label"]
+    # the first step with every scheduled effect on: SH degree 3 from step 3,001 (no scene camera: a pinhole one)
+    assert labels["vanilla"][0] == "A step (3,001) runs:"
+    pinhole = Camera.look_at(eye=(0, -3, 1), at=(0, 0, 0), width=64, height=64, fov=50.0)
+    assert labels["2dgs"][1:-1] == list(step_plan(TrainerConfig(method="2dgs", steps=7000), pinhole, 3, 3000).stages)
+    assert "loss_normal_consistency" in labels["2dgs"] and "thickness_clamp" in labels["2dgs"]
+    assert "loss_normal_consistency" not in labels["vanilla"] and "thickness_clamp" not in labels["vanilla"]
+    assert labels["vanilla"][-1].startswith("Skipped: antialias_compensation, gaussian_normals")
