@@ -1079,8 +1079,13 @@ Inputs input_pointers(const std::vector<mx::array>& inputs) {
   return in;
 }
 
-void allocate(mx::array& out) {
-  out.set_data(mx::allocator::malloc(out.nbytes()));
+// Allocates the outputs and registers every array with the stream's CPU command encoder, which it returns.
+auto& prepare(const mx::Stream& stream, const std::vector<mx::array>& inputs, std::vector<mx::array>& outputs) {
+  for (auto& o : outputs) o.set_data(mx::allocator::malloc(o.nbytes()));
+  auto& encoder = mx::cpu::get_command_encoder(stream);
+  for (const auto& a : inputs) encoder.set_input_array(a);
+  for (auto& o : outputs) encoder.set_output_array(o);
+  return encoder;
 }
 
 // ---------------------------------------------------------------- primitives
@@ -1094,10 +1099,7 @@ class RasterizeBackward : public mx::Primitive {
   //         last, final_T, dL/daccum (H,W,C), dL/dalpha (H,W)
   // outputs: dL/dmeans2d, dL/dconics, dL/dfeatures, dL/dopacities
   void eval_cpu(const std::vector<mx::array>& inputs, std::vector<mx::array>& outputs) override {
-    for (auto& o : outputs) allocate(o);
-    auto& encoder = mx::cpu::get_command_encoder(stream());
-    for (const auto& a : inputs) encoder.set_input_array(a);
-    for (auto& o : outputs) encoder.set_output_array(o);
+    auto& encoder = prepare(stream(), inputs, outputs);
     Inputs in = input_pointers(inputs);
     for (int i = 6; i < 10; ++i)
       if (!inputs[i].flags().row_contiguous) throw std::runtime_error("rasterize: internal error: non-contiguous input");
@@ -1147,10 +1149,7 @@ class RasterizeForward : public mx::Primitive {
       : mx::Primitive(stream), width_(width), height_(height), tile_(tile), num_threads_(num_threads) {}
 
   void eval_cpu(const std::vector<mx::array>& inputs, std::vector<mx::array>& outputs) override {
-    for (auto& o : outputs) allocate(o);
-    auto& encoder = mx::cpu::get_command_encoder(stream());
-    for (const auto& a : inputs) encoder.set_input_array(a);
-    for (auto& o : outputs) encoder.set_output_array(o);
+    auto& encoder = prepare(stream(), inputs, outputs);
     Inputs in = input_pointers(inputs);
     const Geometry geo = make_geometry(width_, height_, tile_, inputs[0].shape(0), inputs[2].shape(1), inputs[5].size());
     ForwardOut out{outputs[0].data<float>(), outputs[1].data<float>(), outputs[2].data<int32_t>(),
