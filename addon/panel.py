@@ -196,7 +196,7 @@ def _planned_stages(scene, settings) -> tuple:
     the first step with every scheduled effect on, seen from the scene camera (a pinhole one without it)."""
     from mlx3d.cameras import Camera
     from mlx3d.training import TrainerConfig
-    from mlx3d.training.plan import step_plan
+    from mlx3d.training.plan import active_sh_degree, step_plan
 
     from .camera import camera_from_blender
 
@@ -206,8 +206,7 @@ def _planned_stages(scene, settings) -> tuple:
         config = TrainerConfig(method=settings.train_method, steps=settings.train_steps)
         camera = camera_from_blender(scene.camera, scene) if scene.camera else Camera.look_at(eye=(0, -3, 1), at=(0, 0, 0), width=64, height=64, fov=50.0)
         step = min(settings.train_steps - 1, max(config.geometry_from, config.densify_from, config.sh_degree_interval * settings.train_sh_degree))
-        degree = min(step // config.sh_degree_interval, settings.train_sh_degree) if config.sh_degree_interval else settings.train_sh_degree
-        plan = step_plan(config, camera, degree, step)
+        plan = step_plan(config, camera, active_sh_degree(config, step, settings.train_sh_degree), step)
         _plan_cache.clear()
         _plan_cache[key] = (plan.stages, plan.skipped, step + 1)
     return _plan_cache[key]

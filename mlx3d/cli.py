@@ -120,14 +120,14 @@ def _plan_camera(args, model):
 def _print_plan(args, path: str) -> None:
     from .render import plan_render
     from .training import TrainerConfig
-    from .training.plan import step_plan
+    from .training.plan import active_sh_degree, step_plan
 
     model = _load(path, "keep")
     camera, where = _plan_camera(args, model)
     config = TrainerConfig(method=args.method, antialias=args.antialias, projection=args.projection, bilateral_grid=args.bilateral_grid)
     render = plan_render(camera, sh=model.sh[:0], sh_degree=model.sh_degree, projection=args.projection, antialias=args.antialias)
     step = max(args.step, 1)
-    active = min((step - 1) // config.sh_degree_interval if config.sh_degree_interval else model.sh_degree, model.sh_degree)
+    active = active_sh_degree(config, step - 1, model.sh_degree)
     train = step_plan(config, camera, active, step - 1)
     print(f"camera:              {where}")
     print(f"render:              {' -> '.join(render.stages)}")

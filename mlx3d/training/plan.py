@@ -53,6 +53,13 @@ class StepPlan:
         )
 
 
+def active_sh_degree(config, steps_done: int, max_degree: int) -> int:
+    """The SH degree a step evaluates after ``steps_done`` steps (raised every ``sh_degree_interval``, capped at ``max_degree``)."""
+    if not config.sh_degree_interval:
+        return max_degree
+    return min(steps_done // config.sh_degree_interval, max_degree)
+
+
 def step_plan(config, camera, sh_degree: int, step: int = 0, backend: str = "auto") -> StepPlan:
     """The plan of training step ``step + 1`` (``step`` steps done) for ``config``
     on ``camera`` with SH evaluated up to ``sh_degree`` (the active degree)."""
