@@ -287,13 +287,41 @@ def _select_only(context, obj):
         context.view_layer.objects.active = obj
 
 
+# Events a running operator lets through to the 3D viewport, so the view can be orbited, panned and zoomed meanwhile.
+_VIEW_EVENTS = {
+    "MOUSEMOVE", "INBETWEEN_MOUSEMOVE", "MIDDLEMOUSE", "WHEELUPMOUSE", "WHEELDOWNMOUSE", "WHEELINMOUSE", "WHEELOUTMOUSE",
+    "TRACKPADPAN", "TRACKPADZOOM", "MOUSEROTATE", "MOUSESMARTZOOM", "LEFT_SHIFT", "RIGHT_SHIFT", "LEFT_CTRL", "RIGHT_CTRL",
+    "LEFT_ALT", "RIGHT_ALT", "OSKEY", "NUMPAD_0", "NUMPAD_1", "NUMPAD_2", "NUMPAD_3", "NUMPAD_4", "NUMPAD_5", "NUMPAD_6",
+    "NUMPAD_7", "NUMPAD_8", "NUMPAD_9", "NUMPAD_PERIOD", "NUMPAD_PLUS", "NUMPAD_MINUS", "HOME",
+}
+
+
 class _ModalWork:
     """Plumbing of operators that do one unit of work per timer tick: the timer,
-    status-bar progress, header text, and handing the session back at the end."""
+    status-bar progress, header text, event routing and handing the session back
+    at the end. Subclasses give ``_tick`` (one unit of work) and ``_end``, or
+    their own ``_escape``."""
 
     _session = None
     _timer = None
     _area = None
+    # Events other than the timer and Esc that reach the rest of Blender while the work runs:
+    # "NONE" (the scene stays still), "VIEW" (viewport navigation) or "ALL".
+    PASS_EVENTS = "VIEW"
+
+    def modal(self, context, event):
+        if self._session is None:
+            return {"CANCELLED"}
+        if event.type == "ESC" and event.value == "PRESS":
+            return self._escape(context)
+        if event.type == "TIMER":
+            return self._tick(context)
+        if self.PASS_EVENTS == "ALL" or (self.PASS_EVENTS == "VIEW" and (event.type in _VIEW_EVENTS or event.type.startswith("NDOF"))):
+            return {"PASS_THROUGH"}
+        return {"RUNNING_MODAL"}
+
+    def _escape(self, context):
+        return self._end(context, cancelled=True)
 
     def _start_modal(self, context, total: int, text: str):
         wm = context.window_manager
@@ -327,6 +355,7 @@ class MLX3D_OT_capture_dataset(_ModalWork, bpy.types.Operator):
     """Render the scene's meshes from an orbit of cameras (or the scene cameras) with Cycles into a training dataset: images, transforms.json, a COLMAP model and initial points. Esc cancels and keeps the views rendered so far"""
 
     bl_idname = "mlx3d.capture_dataset"
+    PASS_EVENTS = "NONE"  # the scene stays still while it is captured
     bl_label = "Capture Dataset"
     bl_options = {"REGISTER"}
 
@@ -405,13 +434,7 @@ class MLX3D_OT_capture_dataset(_ModalWork, bpy.types.Operator):
         _report_all(self, messages)
         return {"CANCELLED"} if cancelled else {"FINISHED"}
 
-    def modal(self, context, event):
-        if self._session is None:
-            return {"CANCELLED"}
-        if event.type == "ESC" and event.value == "PRESS":
-            return self._end(context, cancelled=True)
-        if event.type != "TIMER":
-            return {"RUNNING_MODAL"}  # keep the scene still while capturing
+    def _tick(self, context):
         try:
             done = self._session.step()
         except (ValueError, OSError, RuntimeError) as exc:
@@ -425,15 +448,6 @@ class MLX3D_OT_capture_dataset(_ModalWork, bpy.types.Operator):
     def cancel(self, context):
         if self._session is not None:
             self._end(context, cancelled=True)
-
-
-# Events a running training lets through to the 3D viewport, so the view can be orbited, panned and zoomed meanwhile.
-_VIEW_EVENTS = {
-    "MOUSEMOVE", "INBETWEEN_MOUSEMOVE", "MIDDLEMOUSE", "WHEELUPMOUSE", "WHEELDOWNMOUSE", "WHEELINMOUSE", "WHEELOUTMOUSE",
-    "TRACKPADPAN", "TRACKPADZOOM", "MOUSEROTATE", "MOUSESMARTZOOM", "LEFT_SHIFT", "RIGHT_SHIFT", "LEFT_CTRL", "RIGHT_CTRL",
-    "LEFT_ALT", "RIGHT_ALT", "OSKEY", "NUMPAD_0", "NUMPAD_1", "NUMPAD_2", "NUMPAD_3", "NUMPAD_4", "NUMPAD_5", "NUMPAD_6",
-    "NUMPAD_7", "NUMPAD_8", "NUMPAD_9", "NUMPAD_PERIOD", "NUMPAD_PLUS", "NUMPAD_MINUS", "HOME",
-}
 
 
 class MLX3D_OT_train(_ModalWork, bpy.types.Operator):
@@ -531,13 +545,7 @@ class MLX3D_OT_train(_ModalWork, bpy.types.Operator):
         self._redraw(context)
         return {"FINISHED"}  # also after Esc or an error: the object kept in the scene gets its undo step
 
-    def modal(self, context, event):
-        if self._session is None:
-            return {"CANCELLED"}
-        if event.type == "ESC" and event.value == "PRESS":
-            return self._end(context, cancelled=True)
-        if event.type != "TIMER":
-            return {"PASS_THROUGH"} if event.type in _VIEW_EVENTS or event.type.startswith("NDOF") else {"RUNNING_MODAL"}
+    def _tick(self, context):
         session = self._session
         updated = session.object_step
         try:
@@ -623,17 +631,15 @@ class MLX3D_OT_extract_mesh(_ModalWork, bpy.types.Operator):
         self._session.start()
         return self._start_modal(context, 100, f"Extracting mesh from '{self._session.source_name}' (Esc to cancel)")
 
-    def modal(self, context, event):
+    def _escape(self, context):
         job = self._session
-        if job is None:
-            return {"CANCELLED"}
-        if event.type == "ESC" and event.value == "PRESS":
-            job.cancel()  # the worker stops at its next progress report and its result is dropped
-            self._stop(context)
-            self.report({"INFO"}, f"mesh extraction from '{job.source_name}' cancelled; nothing was added")
-            return {"CANCELLED"}
-        if event.type != "TIMER":
-            return {"PASS_THROUGH"} if event.type in _VIEW_EVENTS or event.type.startswith("NDOF") else {"RUNNING_MODAL"}
+        job.cancel()  # the worker stops at its next progress report and its result is dropped
+        self._stop(context)
+        self.report({"INFO"}, f"mesh extraction from '{job.source_name}' cancelled; nothing was added")
+        return {"CANCELLED"}
+
+    def _tick(self, context):
+        job = self._session
         if job.running:
             done, total = job.progress
             percent = int(100 * done / max(total, 1))
@@ -654,6 +660,7 @@ class MLX3D_OT_benchmark(_ModalWork, bpy.types.Operator):
     """Measure on this machine what accuracy costs: train and render a fixed set of configurations on a built-in scene and write a markdown report with plots. Runs in a separate process; Esc cancels and writes nothing"""
 
     bl_idname = "mlx3d.benchmark"
+    PASS_EVENTS = "ALL"  # Blender stays usable while the benchmark runs in its own process
     bl_label = "Benchmark this machine"
     bl_options = {"REGISTER"}
 
@@ -706,17 +713,14 @@ class MLX3D_OT_benchmark(_ModalWork, bpy.types.Operator):
             return {"CANCELLED"}
         return self._start_modal(context, 1000, "Benchmarking this machine: starting (Esc to cancel)")
 
-    def modal(self, context, event):
+    def _escape(self, context):
+        self._session.cancel()
+        self._stop(context)
+        self.report({"INFO"}, "the benchmark was cancelled; nothing was written")
+        return {"CANCELLED"}
+
+    def _tick(self, context):
         job = self._session
-        if job is None:
-            return {"CANCELLED"}
-        if event.type == "ESC" and event.value == "PRESS":
-            job.cancel()
-            self._stop(context)
-            self.report({"INFO"}, "the benchmark was cancelled; nothing was written")
-            return {"CANCELLED"}
-        if event.type != "TIMER":
-            return {"PASS_THROUGH"}  # Blender stays usable while the benchmark runs in its own process
         if job.running:
             context.window_manager.progress_update(job.progress)
             self._header(f"Benchmarking this machine: {job.progress / 10:.0f}%, {job.status} (Esc to cancel)")

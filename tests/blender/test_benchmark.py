@@ -4,10 +4,10 @@
 import os
 import re
 import time
-import types
 from types import SimpleNamespace
 
 import pytest
+from modal_state import ESC, MOVE, OperatorState, TIMER
 from panel_layout import RecordingLayout
 
 bpy = pytest.importorskip("bpy")
@@ -52,21 +52,6 @@ def test_default_folder_is_next_to_the_blend_file_or_in_the_temp_folder(extensio
         benchmark.BenchmarkJob(str(tmp_path), "huge")
 
 
-class _OperatorState:
-    """The operator's instance state and ``report``, to drive its ``modal`` without a window (bpy has none here)."""
-
-    def __init__(self, cls, job):
-        self._session, self._timer, self._area, self.reports = job, None, None, []
-        for name in ("_header", "_stop", "_show"):
-            setattr(self, name, types.MethodType(getattr(cls, name), self))
-
-    def report(self, level, message):
-        self.reports.append((set(level), message))
-
-
-TIMER, MOVE, ESC = (SimpleNamespace(type=t, value=v) for t, v in [("TIMER", "NOTHING"), ("MOUSEMOVE", "NOTHING"), ("ESC", "PRESS")])
-
-
 def test_modal_operator_follows_the_child_and_esc_cancels_it(extension, clean_scene, tmp_path):
     benchmark = extension.addon.benchmark
     op = extension.addon.operators.MLX3D_OT_benchmark
@@ -74,7 +59,7 @@ def test_modal_operator_follows_the_child_and_esc_cancels_it(extension, clean_sc
     # Esc once the child reports progress: it stops as on Ctrl+C and writes nothing.
     out = tmp_path / "cancelled"
     job = benchmark.BenchmarkJob(str(out), "tiny")
-    state = _OperatorState(op, job)
+    state = OperatorState(op, job)
     job.start()
     deadline = time.monotonic() + 120
     while job.progress == 0 and job.running and time.monotonic() < deadline:
@@ -92,7 +77,7 @@ def test_modal_operator_follows_the_child_and_esc_cancels_it(extension, clean_sc
     # Run to the end: the timer tick after the child exits reports and opens the report.
     out = tmp_path / "done"
     job = benchmark.BenchmarkJob(str(out), "tiny")
-    state = _OperatorState(op, job)
+    state = OperatorState(op, job)
     job.start()
     assert op.modal(state, bpy.context, TIMER) == {"RUNNING_MODAL"}
     assert job.wait(300) and job.returncode == 0, job._lines

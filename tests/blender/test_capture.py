@@ -15,12 +15,12 @@ import struct
 import subprocess
 import sys
 import time
-import types
 import zlib
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from modal_state import ESC, KEY, MOVE, OperatorState, TIMER
 from panel_layout import RecordingLayout
 
 bpy = pytest.importorskip("bpy")
@@ -389,33 +389,21 @@ def test_scene_is_left_as_it_was(captured):
 
 
 # ------------------------------------------------------------------ cancel, options, errors
-class _OperatorState:
-    """The capture operator's instance state and ``report``, to drive its ``modal`` without a window (bpy has none here)."""
-
-    def __init__(self, cls, session):
-        self._session, self._timer, self._area, self.reports = session, None, None, []
-        for name in ("_end", "_header", "_stop"):
-            setattr(self, name, types.MethodType(getattr(cls, name), self))
-
-    def report(self, level, message):
-        self.reports.append((set(level), message))
-
-
 def test_modal_operator_renders_a_view_per_tick_and_esc_keeps_what_was_rendered(extension, clean_scene, tmp_path):
     capture = extension.addon.capture
     op = extension.addon.operators.MLX3D_OT_capture_dataset
     scene = build_scene()
     before = snapshot(scene)
-    timer, move, esc = (SimpleNamespace(type=t, value=v) for t, v in [("TIMER", "NOTHING"), ("MOUSEMOVE", "NOTHING"), ("ESC", "PRESS")])
 
     session = capture.CaptureSession(tmp_path / "ds", num_views=5, elevations_deg=(20,), resolution=(16, 16), samples=1, num_points=100, test_every=0)
     session.start()
     assert "MLX3D capture camera" in bpy.data.objects and scene.render.engine == "CYCLES"
-    state = _OperatorState(op, session)
-    assert op.modal(state, bpy.context, timer) == {"RUNNING_MODAL"}
-    assert op.modal(state, bpy.context, move) == {"RUNNING_MODAL"} and len(session.frames) == 1  # other events do not render
-    assert op.modal(state, bpy.context, timer) == {"RUNNING_MODAL"}
-    assert op.modal(state, bpy.context, esc) == {"CANCELLED"}
+    state = OperatorState(op, session)
+    assert op.modal(state, bpy.context, TIMER) == {"RUNNING_MODAL"}
+    assert op.modal(state, bpy.context, MOVE) == {"RUNNING_MODAL"} and len(session.frames) == 1  # the scene stays still, nothing renders
+    assert op.modal(state, bpy.context, KEY) == {"RUNNING_MODAL"} and len(session.frames) == 1
+    assert op.modal(state, bpy.context, TIMER) == {"RUNNING_MODAL"}
+    assert op.modal(state, bpy.context, ESC) == {"CANCELLED"}
     assert state._session is None and snapshot(scene) == before
     assert state.reports[0] == ({"INFO"}, state.reports[0][1]) and "captured 2 of 5 views (cancelled)" in state.reports[0][1]
     assert sorted(os.listdir(tmp_path / "ds" / "images")) == ["frame_00000.png", "frame_00001.png"]
@@ -426,9 +414,9 @@ def test_modal_operator_renders_a_view_per_tick_and_esc_keeps_what_was_rendered(
 
     session = capture.CaptureSession(tmp_path / "ds #2", num_views=2, elevations_deg=(20,), resolution=(16, 16), samples=1, num_points=100)
     session.start()
-    state = _OperatorState(op, session)
-    assert op.modal(state, bpy.context, timer) == {"RUNNING_MODAL"}
-    assert op.modal(state, bpy.context, timer) == {"FINISHED"}
+    state = OperatorState(op, session)
+    assert op.modal(state, bpy.context, TIMER) == {"RUNNING_MODAL"}
+    assert op.modal(state, bpy.context, TIMER) == {"FINISHED"}
     assert snapshot(scene) == before and "captured 2 views" in state.reports[0][1]
     assert sorted(os.listdir(tmp_path / "ds #2" / "images")) == ["frame_00000.png", "frame_00001.png"]  # '#' is no frame number here
     # Without a window (background), invoking runs the whole capture at once.

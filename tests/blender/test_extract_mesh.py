@@ -11,11 +11,11 @@ import os
 import subprocess
 import sys
 import time
-import types
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from modal_state import ESC, KEY, MOVE, OperatorState, TIMER
 from panel_layout import RecordingLayout
 
 from mlx3d.io import SplatArrays, write_splat_ply
@@ -210,22 +210,6 @@ def test_empty_or_transparent_splats_are_a_clear_error(extension, clean_scene, t
 
 
 # ------------------------------------------------------------------ progress and cancelling
-class _OperatorState:
-    """The operator's instance state and ``report``, to drive its ``modal`` without a window (bpy has none here)."""
-
-    def __init__(self, cls, job):
-        self._session, self._timer, self._area, self.reports = job, None, None, []
-        for name in ("_header", "_stop", "_add"):
-            setattr(self, name, types.MethodType(getattr(cls, name), self))
-
-    def report(self, level, message):
-        self.reports.append((set(level), message))
-
-
-TIMER, MOVE, KEY, ESC = (SimpleNamespace(type=t, value=v) for t, v in
-                         [("TIMER", "NOTHING"), ("MOUSEMOVE", "NOTHING"), ("A", "PRESS"), ("ESC", "PRESS")])
-
-
 def test_a_progress_callback_that_raises_cancels_and_adds_nothing(extension, clean_scene, tmp_path):
     workflows = extension.addon.workflows
     splats = import_splats(tmp_path / "sphere.ply")
@@ -258,7 +242,7 @@ def test_modal_operator_polls_the_worker_and_esc_adds_nothing(extension, clean_s
     before = scene_state()
 
     job = workflows.MeshExtraction(splats, resolution=RESOLUTION)
-    state = _OperatorState(op, job)
+    state = OperatorState(op, job)
     gate = __import__("threading").Event()
     compute = job.compute
     job.compute = lambda progress=None: (gate.wait(30), compute(progress))[1]  # holds the worker until released
@@ -273,7 +257,7 @@ def test_modal_operator_polls_the_worker_and_esc_adds_nothing(extension, clean_s
     assert state.reports == [({"INFO"}, "mesh extraction from 'sphere' cancelled; nothing was added")]
 
     job = workflows.MeshExtraction(splats, resolution=RESOLUTION)
-    state = _OperatorState(op, job)
+    state = OperatorState(op, job)
     job.start()
     assert job.wait(60)
     assert op.modal(state, bpy.context, TIMER) == {"FINISHED"}
@@ -283,7 +267,7 @@ def test_modal_operator_polls_the_worker_and_esc_adds_nothing(extension, clean_s
     # Blender ending the operator (another file loaded) stops the worker and adds nothing.
     count = len(bpy.data.meshes)
     job = workflows.MeshExtraction(splats, resolution=RESOLUTION)
-    state = _OperatorState(op, job)
+    state = OperatorState(op, job)
     job.start()
     op.cancel(state, bpy.context)
     assert job.wait(60) and state._session is None and len(bpy.data.meshes) == count

@@ -13,11 +13,11 @@ import shutil
 import subprocess
 import sys
 import time
-import types
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from modal_state import ESC, KEY, MOVE, OperatorState, TIMER
 from panel_layout import RecordingLayout
 
 from mlx3d.io import read_splat_ply
@@ -26,8 +26,6 @@ bpy = pytest.importorskip("bpy")
 pytest.importorskip("PIL", reason="mlx3d.datasets decodes images with Pillow")
 
 NUM_POINTS = 2000
-TIMER, MOVE, KEY, ESC = (SimpleNamespace(type=t, value=v) for t, v in
-                         [("TIMER", "NOTHING"), ("MOUSEMOVE", "NOTHING"), ("A", "PRESS"), ("ESC", "PRESS")])
 # Densification fires in a short run: every 20 steps from step 20 on, with any screen-space gradient.
 DENSIFY_SOON = dict(densify_from=10, densify_every=20, grad_threshold=1e-7)
 
@@ -70,19 +68,6 @@ def assert_holds_model(extension, obj, model):
     for key in ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest"):
         assert np.array_equal(getattr(arrays, key), getattr(expected, key)), key
     assert np.array_equal(np.array(obj.matrix_world), np.eye(4))
-
-
-class _OperatorState:
-    """The train operator's instance state and ``report``, to drive its ``modal`` without a window (bpy has none here)."""
-
-    def __init__(self, cls, session, tick_seconds=0.05):
-        self._session, self._timer, self._area, self.reports = session, None, None, []
-        self.TICK_SECONDS = tick_seconds
-        for name in ("_end", "_stop", "_header", "_redraw", "_report_end"):
-            setattr(self, name, types.MethodType(getattr(cls, name), self))
-
-    def report(self, level, message):
-        self.reports.append((set(level), message))
 
 
 # ------------------------------------------------------------------ the operator
@@ -156,7 +141,7 @@ def test_modal_trains_per_tick_and_esc_keeps_the_partial_result(extension, clean
     op = extension.addon.operators.MLX3D_OT_train
     session = train.TrainSession(dataset, steps=10_000, update_every=1000, sh_degree=0)
     session.update_object()  # as invoke does: the initial Gaussians at once
-    state = _OperatorState(op, session)
+    state = OperatorState(op, session)
     assert op.modal(state, bpy.context, TIMER) == {"RUNNING_MODAL"}
     first = session.step_count
     assert 1 <= first < 10_000
@@ -179,7 +164,7 @@ def test_modal_trains_per_tick_and_esc_keeps_the_partial_result(extension, clean
 def test_blender_ending_the_operator_leaves_the_scene_alone(extension, clean_scene, dataset):
     op = extension.addon.operators.MLX3D_OT_train
     session = extension.addon.train.TrainSession(dataset, steps=100, update_every=1000, sh_degree=0)
-    state = _OperatorState(op, session)
+    state = OperatorState(op, session)
     assert op.modal(state, bpy.context, TIMER) == {"RUNNING_MODAL"}
     op.cancel(state, bpy.context)  # e.g. another file is opened: no object is made or changed then
     assert state._session is None and not splat_objects() and not state.reports
@@ -188,7 +173,7 @@ def test_blender_ending_the_operator_leaves_the_scene_alone(extension, clean_sce
 def test_modal_runs_to_the_end(extension, clean_scene, dataset):
     op = extension.addon.operators.MLX3D_OT_train
     session = extension.addon.train.TrainSession(dataset, steps=4, update_every=2, sh_degree=0)
-    state = _OperatorState(op, session, tick_seconds=0.0)  # one step per tick
+    state = OperatorState(op, session, TICK_SECONDS=0.0)  # one step per tick
     results = [op.modal(state, bpy.context, TIMER) for _ in range(4)]
     assert results == [{"RUNNING_MODAL"}] * 3 + [{"FINISHED"}]
     assert state.reports[0][1].startswith("trained 4 steps") and state._session is None
@@ -208,7 +193,7 @@ def test_a_training_error_keeps_the_last_good_state(extension, clean_scene, data
         return good_step(*args, **kwargs)
 
     session.trainer.step = failing_step
-    state = _OperatorState(op, session, tick_seconds=60.0)  # the error comes within the first tick
+    state = OperatorState(op, session, TICK_SECONDS=60.0)  # the error comes within the first tick
     assert op.modal(state, bpy.context, TIMER) == {"FINISHED"}
     assert state._session is None
     (obj,) = splat_objects()
