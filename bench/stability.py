@@ -1,7 +1,7 @@
 """Long-run stability: train each method for many steps and check everything stays finite.
 
     python bench/stability.py DATA_DIR [--steps 30000] [--methods vanilla,mcmc,2dgs]
-                              [--every 1000] [--max-gaussians 100000] [--markdown PATH]
+                              [--every 1000] [--max-gaussians 100000] [--jobs N] [--markdown PATH]
 
 Each method trains in its own process on DATA_DIR (``make demo`` writes the
 demo scene to ``demo_out/dataset``), white background. Every ``--every``
@@ -10,7 +10,9 @@ the largest |value| of every raw parameter and the extreme scales, and checks
 that all parameters and Adam moments are finite (the trainer itself stops
 with ``TrainingError`` on a non-finite loss or gradient). The table lists the
 last report of each method and whether it finished; the exit code is 1 when
-any method did not.
+any method did not. ``--jobs N`` trains N methods at once, splitting the
+cores between them (``MLX3D_NUM_THREADS``); on a small machine several
+one-thread processes get through more steps than one process on all cores.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ import os
 import platform
 import subprocess
 import sys
+import threading
 import time
 
 from common import emit, peak_rss_mb  # bench/ is on sys.path when run as a script
@@ -76,24 +79,39 @@ def main() -> int:
     parser.add_argument("--methods", default="vanilla,mcmc,2dgs")
     parser.add_argument("--every", type=int, default=1000)
     parser.add_argument("--max-gaussians", type=int, default=100_000)
+    parser.add_argument("--jobs", type=int, default=1, help="methods trained at once (default 1)")
     parser.add_argument("--markdown", metavar="PATH")
     parser.add_argument("--child", metavar="METHOD", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
         _child(args.data, args.child, args.steps, args.every, args.max_gaussians)
         return 0
-    rows, failed = [], False
-    for method in args.methods.split(","):
-        cmd = [sys.executable, __file__, args.data, "--child", method, "--steps", str(args.steps), "--every", str(args.every), "--max-gaussians", str(args.max_gaussians)]
-        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True)
-        last = None
-        for line in proc.stdout:
-            last = json.loads(line)
-            print(f"{method}: step {last['step']:,} loss {last['loss']:.4f} PSNR {last['psnr']:.2f} Gaussians {last['gaussians']:,} ({last['status']})", file=sys.stderr, flush=True)
-        failed |= proc.wait() != 0 or last is None or last["status"] != "finished"
-        rows.append(last or {"method": method, "status": "no report"})
+    methods = args.methods.split(",")
+    jobs = max(1, min(args.jobs, len(methods)))
+    env = dict(os.environ, MLX3D_NUM_THREADS=str(max(1, (os.cpu_count() or 1) // jobs))) if jobs > 1 else None
+    rows, status, slots = {}, {}, threading.Semaphore(jobs)
+
+    def run(method: str) -> None:
+        with slots:
+            cmd = [sys.executable, __file__, args.data, "--child", method, "--steps", str(args.steps), "--every", str(args.every), "--max-gaussians", str(args.max_gaussians)]
+            proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True, env=env)
+            last = None
+            for line in proc.stdout:
+                last = json.loads(line)
+                print(f"{method}: step {last['step']:,} loss {last['loss']:.4f} PSNR {last['psnr']:.2f} Gaussians {last['gaussians']:,} ({last['status']}, {last['seconds']:.0f} s)", file=sys.stderr, flush=True)
+            status[method] = proc.wait() == 0 and last is not None and last["status"] == "finished"
+            rows[method] = last or {"method": method, "status": "no report"}
+
+    threads = [threading.Thread(target=run, args=(m,)) for m in methods]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    failed = not all(status.get(m, False) for m in methods)
+    rows = [rows.get(m, {"method": m, "status": "no report"}) for m in methods]
     lines = [
-        f"Stability on {os.path.basename(os.path.abspath(args.data))} ({platform.machine()}, {os.cpu_count()} cores): {args.steps:,} steps per method",
+        f"Stability on {os.path.basename(os.path.abspath(args.data))} ({platform.machine()}, {os.cpu_count()} cores): {args.steps:,} steps per method, "
+        f"at most {args.max_gaussians:,} Gaussians, {jobs} at a time",
         "",
         "| method | status | steps | time (s) | loss | train PSNR (dB) | Gaussians | largest coordinate | scale min | scale max | peak RSS (MB) |",
         "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
