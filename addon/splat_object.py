@@ -297,6 +297,19 @@ def _write_native(cloud, arrays, scales, opacity) -> None:
             cloud.type = splat_types[0]
 
 
+def node_material(name: str, build):
+    """The material ``name`` (reused when it exists), else a new one whose
+    emptied node tree ``build(nodes, links)`` fills."""
+    mat = bpy.data.materials.get(name)
+    if mat is None:
+        mat = bpy.data.materials.new(name)
+        if bpy.app.version < (5, 0, 0):  # 5.0+ materials always use nodes
+            mat.use_nodes = True
+        mat.node_tree.nodes.clear()
+        build(mat.node_tree.nodes, mat.node_tree.links)
+    return mat
+
+
 def attribute_material(name: str, attribute_type: str = "GEOMETRY", transparent: bool = True):
     """An emissive material coloured by ``splat_color`` (reused when it exists).
 
@@ -304,34 +317,29 @@ def attribute_material(name: str, attribute_type: str = "GEOMETRY", transparent:
     points themselves, 'INSTANCER' for instances on them); transparent: mix
     with a transparent shader by the attribute's alpha (the splat opacity).
     """
-    mat = bpy.data.materials.get(name)
-    if mat is not None:
-        return mat
-    mat = bpy.data.materials.new(name)
-    if bpy.app.version < (5, 0, 0):  # 5.0+ materials always use nodes
-        mat.use_nodes = True
-    nodes, links = mat.node_tree.nodes, mat.node_tree.links
-    nodes.clear()
-    attr = nodes.new("ShaderNodeAttribute")
-    attr.attribute_type = attribute_type
-    attr.attribute_name = "splat_color"
-    emission = nodes.new("ShaderNodeEmission")
-    out = nodes.new("ShaderNodeOutputMaterial")
-    links.new(attr.outputs["Color"], emission.inputs["Color"])
-    chain = [attr, emission]
-    shader = emission.outputs["Emission"]
-    if transparent:
-        clear = nodes.new("ShaderNodeBsdfTransparent")
-        mix = nodes.new("ShaderNodeMixShader")
-        links.new(attr.outputs["Alpha"], mix.inputs["Fac"])
-        links.new(clear.outputs["BSDF"], mix.inputs[1])
-        links.new(shader, mix.inputs[2])
-        chain += [clear, mix]
-        shader = mix.outputs["Shader"]
-    links.new(shader, out.inputs["Surface"])
-    for i, node in enumerate(chain + [out]):
-        node.location = (220 * i - 440, 0)
-    return mat
+
+    def build(nodes, links):
+        attr = nodes.new("ShaderNodeAttribute")
+        attr.attribute_type = attribute_type
+        attr.attribute_name = "splat_color"
+        emission = nodes.new("ShaderNodeEmission")
+        out = nodes.new("ShaderNodeOutputMaterial")
+        links.new(attr.outputs["Color"], emission.inputs["Color"])
+        chain = [attr, emission]
+        shader = emission.outputs["Emission"]
+        if transparent:
+            clear = nodes.new("ShaderNodeBsdfTransparent")
+            mix = nodes.new("ShaderNodeMixShader")
+            links.new(attr.outputs["Alpha"], mix.inputs["Fac"])
+            links.new(clear.outputs["BSDF"], mix.inputs[1])
+            links.new(shader, mix.inputs[2])
+            chain += [clear, mix]
+            shader = mix.outputs["Shader"]
+        links.new(shader, out.inputs["Surface"])
+        for i, node in enumerate(chain + [out]):
+            node.location = (220 * i - 440, 0)
+
+    return node_material(name, build)
 
 
 def _ensure_material(cloud) -> None:

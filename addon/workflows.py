@@ -31,6 +31,7 @@ from .splat_object import (
     create_splat_object,
     is_identity,
     is_splat_object,
+    node_material,
     object_matrix,
     read_splats,
     replace_splats,
@@ -430,23 +431,18 @@ def _mesh_arrays(surface, source_name):
 
 def mesh_material():
     """The material of extracted meshes (reused when it exists): Principled BSDF coloured by the ``Color`` attribute."""
-    mat = bpy.data.materials.get(MESH_MATERIAL)
-    if mat is not None:
-        return mat
-    mat = bpy.data.materials.new(MESH_MATERIAL)
-    if bpy.app.version < (5, 0, 0):  # 5.0+ materials always use nodes
-        mat.use_nodes = True
-    nodes, links = mat.node_tree.nodes, mat.node_tree.links
-    nodes.clear()
-    attr = nodes.new("ShaderNodeVertexColor")
-    attr.layer_name = MESH_COLOR_ATTRIBUTE
-    bsdf = nodes.new("ShaderNodeBsdfPrincipled")
-    out = nodes.new("ShaderNodeOutputMaterial")
-    links.new(attr.outputs["Color"], bsdf.inputs["Base Color"])
-    links.new(bsdf.outputs["BSDF"], out.inputs["Surface"])
-    for i, node in enumerate((attr, bsdf, out)):
-        node.location = (300 * i - 300, 0)
-    return mat
+
+    def build(nodes, links):
+        attr = nodes.new("ShaderNodeVertexColor")
+        attr.layer_name = MESH_COLOR_ATTRIBUTE
+        bsdf = nodes.new("ShaderNodeBsdfPrincipled")
+        out = nodes.new("ShaderNodeOutputMaterial")
+        links.new(attr.outputs["Color"], bsdf.inputs["Base Color"])
+        links.new(bsdf.outputs["BSDF"], out.inputs["Surface"])
+        for i, node in enumerate((attr, bsdf, out)):
+            node.location = (300 * i - 300, 0)
+
+    return node_material(MESH_MATERIAL, build)
 
 
 def new_mesh_object(name, vertices, faces, colors=None, *, collection, parent=None):
