@@ -19,7 +19,9 @@ def test_events_fire_on_the_right_steps():
     fired = {e: [s for s in range(1, 20001) if e in events_at(c, s)] for e in ("sh_up", "densify", "reset_opacity")}
     assert fired["sh_up"] == list(range(1000, 20001, 1000))
     assert fired["densify"] == list(range(600, 15001, 100))
-    assert fired["reset_opacity"] == [3000, 6000, 9000, 12000, 15000]
+    assert fired["reset_opacity"] == [3000, 6000, 9000, 12000]  # none at the last densification (15,000): nothing would prune after it
+    c = TrainerConfig(densify_until=15_100)
+    assert [s for s in range(1, 20001) if "reset_opacity" in events_at(c, s)] == [3000, 6000, 9000, 12000, 15000]
 
 
 def test_no_opacity_reset_in_the_last_steps_of_a_run():

@@ -127,7 +127,10 @@ def events_at(config: TrainerConfig, step: int) -> tuple:
             return tuple(events)
         if step % config.densify_every == 0:
             events.append("densify")
-        if config.opacity_reset_every and step % config.opacity_reset_every == 0 and step <= config.steps - config.reset_recovery:
+        # A reset needs density control after it (pruning what stays transparent) and steps to recover,
+        # so none at the last densification step (as in the 3DGS reference) nor in the last reset_recovery steps.
+        if (config.opacity_reset_every and step % config.opacity_reset_every == 0 and step < config.densify_until
+                and step <= config.steps - config.reset_recovery):
             events.append("reset_opacity")
     return tuple(events)
 
