@@ -355,9 +355,9 @@ class MLX3D_OT_capture_dataset(_ModalWork, bpy.types.Operator):
     """Render the scene's meshes from an orbit of cameras (or the scene cameras) with Cycles into a training dataset: images, transforms.json, a COLMAP model and initial points. Esc cancels and keeps the views rendered so far"""
 
     bl_idname = "mlx3d.capture_dataset"
-    PASS_EVENTS = "NONE"  # the scene stays still while it is captured
     bl_label = "Capture Dataset"
     bl_options = {"REGISTER"}
+    PASS_EVENTS = "NONE"  # the scene stays still while it is captured
 
     directory: StringProperty(name="Folder", subtype="DIR_PATH", default="", description="Output folder of the dataset", options=BLEND_RELATIVE_PATH)
     selected_only: BoolProperty(name="Selected only", default=False, description="Capture the selected meshes (else every visible mesh)")
@@ -660,9 +660,9 @@ class MLX3D_OT_benchmark(_ModalWork, bpy.types.Operator):
     """Measure on this machine what accuracy costs: train and render a fixed set of configurations on a built-in scene and write a markdown report with plots. Runs in a separate process; Esc cancels and writes nothing"""
 
     bl_idname = "mlx3d.benchmark"
-    PASS_EVENTS = "ALL"  # Blender stays usable while the benchmark runs in its own process
     bl_label = "Benchmark this machine"
     bl_options = {"REGISTER"}
+    PASS_EVENTS = "ALL"  # Blender stays usable while the benchmark runs in its own process
 
     directory: StringProperty(name="Folder", subtype="DIR_PATH", default="", options=BLEND_RELATIVE_PATH,
                               description="Output folder of the report (empty: mlx3d_accuracy next to the .blend file, or in the temporary folder)")
