@@ -71,11 +71,20 @@ def _section(layout, title: str, settings, operator, icon: str, fields: dict):
     return col
 
 
-class VIEW3D_PT_mlx3d_splats(bpy.types.Panel):
-    bl_label = "Gaussian Splats"
+class _SplatsTab:
+    """Where the panels live: the 3D viewport's sidebar (N-panel), tab "Splats"."""
+
     bl_space_type = "VIEW_3D"
     bl_region_type = "UI"
     bl_category = "Splats"
+
+
+class _SplatsSubpanel(_SplatsTab):
+    bl_parent_id = "VIEW3D_PT_mlx3d_splats"
+
+
+class VIEW3D_PT_mlx3d_splats(_SplatsTab, bpy.types.Panel):
+    bl_label = "Gaussian Splats"
 
     def draw(self, context):
         layout = self.layout
@@ -153,14 +162,10 @@ class VIEW3D_PT_mlx3d_splats(bpy.types.Panel):
         op.num_points, op.selected_only = settings.capture_points, settings.capture_selected_only
 
 
-class VIEW3D_PT_mlx3d_train(bpy.types.Panel):
+class VIEW3D_PT_mlx3d_train(_SplatsSubpanel, bpy.types.Panel):
     """Train Gaussians on a dataset folder (by default the capture folder)"""
 
     bl_label = "Train"
-    bl_space_type = "VIEW_3D"
-    bl_region_type = "UI"
-    bl_category = "Splats"
-    bl_parent_id = "VIEW3D_PT_mlx3d_splats"
 
     def draw(self, context):
         settings = context.scene.mlx3d_splats
@@ -212,14 +217,10 @@ def _planned_stages(scene, settings) -> tuple:
     return _plan_cache[key]
 
 
-class VIEW3D_PT_mlx3d_benchmark(bpy.types.Panel):
+class VIEW3D_PT_mlx3d_benchmark(_SplatsSubpanel, bpy.types.Panel):
     """Measure what accuracy costs in time and memory on this machine"""
 
     bl_label = "Benchmark"
-    bl_space_type = "VIEW_3D"
-    bl_region_type = "UI"
-    bl_category = "Splats"
-    bl_parent_id = "VIEW3D_PT_mlx3d_splats"
     bl_options = {"DEFAULT_CLOSED"}
 
     def draw(self, context):
