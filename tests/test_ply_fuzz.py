@@ -659,6 +659,35 @@ def _call(fn, *args, **kwargs):
     return result, exc, odd, time.perf_counter() - t0
 
 
+def _judge_reader(out, key, tag, read, expected, describe, check, round_trip, error_names=None) -> None:
+    """Run ``read()`` under :func:`_call` and add to ``out`` what went wrong.
+
+    key: 'splat' or 'mesh' (``out.loaded[key]``); expected: the case's
+    :class:`Expect` field ('any', 'load' or 'raise'); describe(result): what was loaded, for a case that must raise;
+    check(result) and round_trip(result): lists of problems, the round trip
+    only when nothing is wrong so far; error_names: text a PlyFormatError must
+    contain (the file's path).
+    """
+    result, exc, odd, secs = _call(read)
+    out.problems += [f"{tag}: unexpected warning {w}" for w in odd]
+    out.loaded[key] = exc is None
+    if exc is not None:
+        if not isinstance(exc, PlyFormatError):
+            out.problems.append(f"{tag}: raised {type(exc).__name__}: {exc}")
+        elif expected == "load":
+            out.problems.append(f"{tag}: must load, raised PlyFormatError: {exc}")
+        elif error_names is not None and error_names not in str(exc):
+            out.problems.append(f"{tag}: error message does not name the file: {exc}")
+    else:
+        if expected == "raise":
+            out.problems.append(f"{tag}: must raise PlyFormatError, loaded {describe(result)}")
+        out.problems += [f"{tag}: {p}" for p in check(result)]
+        if not out.problems:
+            out.problems += [f"{tag}: {p}" for p in round_trip(result)]
+    if secs > CASE_TIME_LIMIT_S:
+        out.problems.append(f"{tag}: took {secs:.1f} s")
+
+
 def _bits(a) -> np.ndarray:
     a = np.ascontiguousarray(a)
     if a.dtype.kind in "fiu" and a.dtype.itemsize > 1:
@@ -837,49 +866,16 @@ def _run_case(seed: Seed, data: bytes, expect: Expect, refs: dict, work: Path,
     sh_degree = _pick(rng, [None, None, None, 0, 1, 2, 3])
     out = Outcome()
 
-    # read_splat_ply
-    s, exc, odd, secs = _call(read_splat_ply, path, nonfinite=mode, sh_degree=sh_degree)
-    tag = f"read_splat_ply(nonfinite={mode!r}, sh_degree={sh_degree})"
-    out.problems += [f"{tag}: unexpected warning {w}" for w in odd]
-    if exc is not None:
-        out.loaded["splat"] = False
-        if not isinstance(exc, PlyFormatError):
-            out.problems.append(f"{tag}: raised {type(exc).__name__}: {exc}")
-        elif expect.splat == "load":
-            out.problems.append(f"{tag}: must load, raised PlyFormatError: {exc}")
-        elif str(path) not in str(exc):
-            out.problems.append(f"{tag}: error message does not name the file: {exc}")
-    else:
-        out.loaded["splat"] = True
-        if expect.splat == "raise":
-            out.problems.append(f"{tag}: must raise PlyFormatError, loaded {s!r}")
-        ref = refs.get(seed.name) if seed.kind == "splat" else None
-        out.problems += [f"{tag}: {p}" for p in _check_splat(s, data, mode, sh_degree, expect, ref, seed)]
-        if not out.problems:
-            out.problems += [f"{tag}: {p}" for p in _splat_round_trip(s, work / f"{label}.rt.ply")]
-    if secs > CASE_TIME_LIMIT_S:
-        out.problems.append(f"{tag}: took {secs:.1f} s")
-
-    # read_mesh_ply
-    m, exc, odd, secs = _call(read_mesh_ply, path)
-    tag = "read_mesh_ply"
-    out.problems += [f"{tag}: unexpected warning {w}" for w in odd]
-    if exc is not None:
-        out.loaded["mesh"] = False
-        if not isinstance(exc, PlyFormatError):
-            out.problems.append(f"{tag}: raised {type(exc).__name__}: {exc}")
-        elif expect.mesh == "load":
-            out.problems.append(f"{tag}: must load, raised PlyFormatError: {exc}")
-    else:
-        out.loaded["mesh"] = True
-        if expect.mesh == "raise":
-            out.problems.append(f"{tag}: must raise PlyFormatError, loaded {len(m.vertices)} vertices")
-        ref = refs.get(seed.name) if seed.kind == "mesh" else None
-        out.problems += [f"{tag}: {p}" for p in _check_mesh(m, data, expect, ref, seed)]
-        if not out.problems:
-            out.problems += [f"{tag}: {p}" for p in _mesh_round_trip(m, work / f"{label}.rt.ply")]
-    if secs > CASE_TIME_LIMIT_S:
-        out.problems.append(f"{tag}: took {secs:.1f} s")
+    _judge_reader(
+        out, "splat", f"read_splat_ply(nonfinite={mode!r}, sh_degree={sh_degree})", lambda: read_splat_ply(path, nonfinite=mode, sh_degree=sh_degree), expect.splat, repr,
+        lambda s: _check_splat(s, data, mode, sh_degree, expect, refs.get(seed.name) if seed.kind == "splat" else None, seed),
+        lambda s: _splat_round_trip(s, work / f"{label}.rt.ply"), error_names=str(path),
+    )
+    _judge_reader(
+        out, "mesh", "read_mesh_ply", lambda: read_mesh_ply(path), expect.mesh, lambda m: f"{len(m.vertices)} vertices",
+        lambda m: _check_mesh(m, data, expect, refs.get(seed.name) if seed.kind == "mesh" else None, seed),
+        lambda m: _mesh_round_trip(m, work / f"{label}.rt.ply"),
+    )
     if not out.problems:
         path.unlink()
     return out
