@@ -259,7 +259,9 @@ def cmd_train(args) -> None:
     if args.eval and dataset.test:
         background = (0.0, 0.0, 0.0) if args.background == "random" else _background_arg(args.background)
         report = evaluate(trainer.model, dataset, "test", background, out_dir=os.path.splitext(args.out)[0] + "_eval")
-        print(f"held-out views: PSNR {report['psnr']:.2f} dB, SSIM {report['ssim']:.4f} ({len(report['views'])} views)")
+        print(f"held-out views: PSNR {report['psnr']:.2f} dB, SSIM {report['ssim']:.4f}, "
+              f"colour-corrected PSNR {report['cc_psnr']:.2f} dB, SSIM {report['cc_ssim']:.4f} ({len(report['views'])} views)")
+        print(_worst_line(report))
 
 
 def cmd_mesh(args) -> None:
@@ -281,6 +283,13 @@ def cmd_mesh(args) -> None:
     print(f"wrote {args.out}: {len(mesh.vertices):,} vertices, {len(mesh.faces):,} faces, area {mesh.area():.4g}, watertight {mesh.is_watertight()}")
 
 
+def _worst_line(report: dict) -> str:
+    """The held-out view with the lowest PSNR, and the one with the lowest colour-corrected PSNR."""
+    worst, cc = report["worst"], report["cc_worst"]
+    return (f"worst view: {worst['name']} PSNR {worst['psnr']:.2f} dB (colour-corrected {worst['cc_psnr']:.2f} dB); "
+            f"worst colour-corrected: {cc['name']} {cc['cc_psnr']:.2f} dB")
+
+
 def cmd_eval(args) -> None:
     from .datasets import load_dataset
     from .splatting import GaussianModel
@@ -289,9 +298,14 @@ def cmd_eval(args) -> None:
     model = GaussianModel.load_ply(args.model, sh_degree=None)
     dataset = load_dataset(args.data, factor=args.factor)
     report = evaluate(model, dataset, args.split, _background_arg(args.background), out_dir=args.out, progress=ProgressLine("evaluating"))
+
+    def row(name, m):
+        return f"{name:<32} PSNR {m['psnr']:6.2f} dB  SSIM {m['ssim']:.4f}  CC-PSNR {m['cc_psnr']:6.2f} dB  CC-SSIM {m['cc_ssim']:.4f}"
+
     for view in report["views"]:
-        print(f"{view['name']:<32} PSNR {view['psnr']:6.2f} dB  SSIM {view['ssim']:.4f}")
-    print(f"{'mean':<32} PSNR {report['psnr']:6.2f} dB  SSIM {report['ssim']:.4f}  ({report['seconds_per_view'] * 1000:.0f} ms per view)")
+        print(row(view["name"], view))
+    print(row("mean", report) + f"  ({report['seconds_per_view'] * 1000:.0f} ms per view)")
+    print(_worst_line(report))
     if args.out:
         print(f"side-by-side renders and metrics.json in {args.out}")
 
@@ -418,7 +432,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--eval", action="store_true", help="evaluate the held-out views at the end")
     p.add_argument("--bilateral-grid", action="store_true", help="per-image colour grid for exposure/white-balance differences")
 
-    p = add("eval", cmd_eval, "PSNR and SSIM of a splat PLY on a dataset's held-out views; side-by-side renders.")
+    p = add("eval", cmd_eval, "PSNR and SSIM of a splat PLY on a dataset's held-out views, plain and colour-corrected (CC: after the best affine colour map per view); the worst view; side-by-side renders.")
     p.add_argument("model", metavar="MODEL.ply")
     p.add_argument("--data", required=True, metavar="DATA_DIR")
     p.add_argument("--split", default="test")

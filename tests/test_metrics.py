@@ -293,3 +293,115 @@ def test_compiled_and_plain_agree(rng):
     )
     # Shape changes retrace the compiled graph instead of failing.
     assert math.isfinite(photometric_loss(A(a[:20, :21]), A(b[:20, :21])).item())
+
+
+# ----------------------------------------------------------------------------
+# colour correction (mlx3d.training.colour)
+# ----------------------------------------------------------------------------
+
+from mlx3d.training.colour import apply_colour_map, colour_correct, fit_colour_map, identity_colour_map  # noqa: E402
+
+# Gain, offset and channel mixing: an exposure and white-balance change.
+KNOWN_MAP = np.array([[0.80, 0.10, 0.00, 0.06], [0.05, 0.70, 0.10, 0.10], [0.00, 0.15, 0.60, 0.20]])
+
+
+def lstsq_map(x, y, w=None):
+    """Independent oracle: weighted least squares on the design matrix [x, 1] (rows scaled by sqrt(w))."""
+    x, y = x.reshape(-1, x.shape[-1]).astype(np.float64), y.reshape(-1, y.shape[-1]).astype(np.float64)
+    d = np.hstack([x, np.ones((len(x), 1))])
+    s = np.ones(len(x)) if w is None else np.sqrt(np.asarray(w, np.float64).reshape(-1))
+    return np.linalg.lstsq(d * s[:, None], y * s[:, None], rcond=None)[0].T  # (C, C + 1)
+
+
+def sse(a, b, w=None):
+    e = ((np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2).sum(-1)
+    return float(e.sum() if w is None else (w * e).sum())
+
+
+def test_colour_map_recovers_a_known_affine_map_and_cc_psnr_sees_through_it():
+    img = structured(48, 40) * 0.9 + 0.05
+    ref = img @ KNOWN_MAP[:, :3].T + KNOWN_MAP[:, 3]  # the ground truth: the render under a known colour map
+    assert ref.min() > 0 and ref.max() < 1
+    np.testing.assert_allclose(fit_colour_map(img, ref), KNOWN_MAP, atol=1e-9)
+    render, truth = A(img), A(ref)
+    corrected = colour_correct(render, truth)
+    assert isinstance(corrected, mx.array) and corrected.shape == render.shape and corrected.dtype == mx.float32
+    plain, cc = psnr(render, truth).item(), psnr(corrected, truth).item()
+    assert plain < 25 and cc > 80, (plain, cc)
+    assert ssim(corrected, truth).item() > 0.9999 > ssim(render, truth).item()
+
+
+def test_colour_map_is_the_weighted_least_squares_optimum(rng):
+    img = rng.random((30, 26, 3))
+    ref = np.clip(np.sqrt(img) @ KNOWN_MAP[:, :3].T + 0.1 * rng.standard_normal((30, 26, 3)), 0, 1)  # no affine map fits exactly
+    for w in (None, rng.random((30, 26)), rng.random((30, 26)) > 0.5):
+        ww = None if w is None else w.astype(np.float64)
+        fitted = fit_colour_map(img, ref, mask=w)
+        np.testing.assert_allclose(fitted, lstsq_map(img, ref, ww), atol=1e-9)
+        best = sse(apply_colour_map(img, fitted, clip=False), ref, ww)
+        assert best < sse(img, ref, ww)
+        for _ in range(20):  # every other map fits worse
+            other = fitted + 1e-3 * rng.standard_normal(fitted.shape)
+            assert sse(apply_colour_map(img, other, clip=False), ref, ww) > best
+        # Clipping to [0, 1] only moves pixels towards ref: the corrected render never fits worse than the render.
+        assert sse(colour_correct(img, ref, mask=w), ref, ww) <= best + 1e-12
+    assert psnr(colour_correct(A(img), A(ref)), A(ref)).item() > psnr(A(img), A(ref)).item()
+
+
+def test_a_mask_keeps_excluded_pixels_out_of_the_fit(rng):
+    img = rng.random((20, 20, 3))
+    ref = img @ KNOWN_MAP[:, :3].T + KNOWN_MAP[:, 3]
+    keep = np.ones((20, 20), bool)
+    keep[:, :7] = False
+    ref[~keep] = rng.random((int((~keep).sum()), 3))  # e.g. a transient object only the photo shows
+    np.testing.assert_allclose(fit_colour_map(img, ref, mask=keep), KNOWN_MAP, atol=1e-9)
+    assert np.abs(fit_colour_map(img, ref) - KNOWN_MAP).max() > 0.05
+    np.testing.assert_array_equal(fit_colour_map(img, ref, mask=np.zeros((20, 20))), identity_colour_map())
+
+
+def test_colour_correction_is_idempotent_and_never_lowers_psnr(rng):
+    img = rng.random((25, 31, 3)) * 0.8 + 0.1
+    ref = np.clip(img @ KNOWN_MAP[:, :3].T + KNOWN_MAP[:, 3] + 0.02 * rng.standard_normal(img.shape), 0, 1)
+    once = colour_correct(img, ref)
+    assert once.min() > 0 and once.max() < 1  # nothing clipped: the second fit must find the identity
+    np.testing.assert_allclose(fit_colour_map(once, ref), identity_colour_map(), atol=1e-9)
+    np.testing.assert_allclose(colour_correct(once, ref), once, atol=1e-12)
+    # A render already at the right colours is left as it is (identity map = least squares optimum).
+    np.testing.assert_allclose(colour_correct(ref, ref), ref, atol=1e-12)
+    for _ in range(5):
+        a, b = rng.random((16, 16, 3)), rng.random((16, 16, 3))
+        assert psnr(colour_correct(A(a), A(b)), A(b)).item() >= psnr(A(a), A(b)).item() - 1e-4
+
+
+def test_constant_and_grey_images_give_well_defined_results(rng):
+    ref = rng.random((12, 10, 3))
+    flat = np.full((12, 10, 3), 0.3)
+    # A constant render can only become a constant: the mean colour of the ground truth.
+    out = colour_correct(flat, ref)
+    assert np.isfinite(out).all()
+    np.testing.assert_allclose(out, np.broadcast_to(ref.reshape(-1, 3).mean(0), ref.shape), atol=1e-12)
+    w = rng.random((12, 10))
+    np.testing.assert_allclose(colour_correct(flat, ref, mask=w)[0, 0], (w[..., None] * ref).sum((0, 1)) / w.sum(), atol=1e-12)
+    # A constant ground truth is matched exactly; a constant pair stays put.
+    np.testing.assert_allclose(colour_correct(ref, flat), flat, atol=1e-12)
+    np.testing.assert_allclose(colour_correct(flat, flat), flat, atol=1e-12)
+    np.testing.assert_array_equal(colour_correct(np.zeros((4, 4, 3)), np.zeros((4, 4, 3))), np.zeros((4, 4, 3)))
+    # A grey render (R = G = B) spans one colour direction: the map is not unique, its prediction is.
+    grey = np.repeat(rng.random((12, 10, 1)), 3, axis=-1)
+    m = fit_colour_map(grey, ref)
+    assert np.isfinite(m).all() and np.abs(m).max() < 10
+    oracle = apply_colour_map(grey, lstsq_map(grey, ref), clip=False)
+    np.testing.assert_allclose(apply_colour_map(grey, m, clip=False), oracle, atol=1e-9)
+    out = colour_correct(A(grey), A(ref))
+    assert np.isfinite(np.array(out)).all()
+
+
+def test_colour_correction_rejects_bad_input():
+    with pytest.raises(ValueError, match="shapes differ"):
+        fit_colour_map(np.zeros((4, 4, 3)), np.zeros((4, 5, 3)))
+    with pytest.raises(ValueError, match="broadcast"):
+        fit_colour_map(np.zeros((4, 4, 3)), np.zeros((4, 4, 3)), mask=np.ones((5, 4)))
+    with pytest.raises(ValueError, match=">= 0"):
+        fit_colour_map(np.zeros((4, 4, 3)), np.zeros((4, 4, 3)), mask=-np.ones((4, 4)))
+    with pytest.raises(ValueError, match=r"\(3, 4\)"):
+        apply_colour_map(np.zeros((4, 4, 3)), np.eye(3))
