@@ -1,12 +1,34 @@
-"""Benchmark training: steps/s, peak memory and held-out PSNR/SSIM at milestones.
+"""Benchmark training per scene and method: held-out PSNR, SSIM and CC-PSNR (mean and worst view), Gaussians, steps/s, memory.
 
-    python bench/train.py DATA_DIR [--milestones 1000,3000,7000] [--methods vanilla,mcmc]
-                          [--max-gaussians 100000] [--markdown PATH]
+    python bench/train.py DATA_DIR [DATA_DIR ...] [--suite DIR] [--methods vanilla,mcmc]
+                          [--steps N | --milestones 1000,3000,7000] [--variants plain,grid | --bilateral-grid]
+                          [--max-gaussians N] [--background white|black] [--jobs N]
+                          [--out bench/out/train] [--markdown PATH]
 
-DATA_DIR is any dataset folder ``mlx3d.datasets.load_dataset`` reads; the
-README's numbers use the captured demo scene (``make demo`` writes it to
-``demo_out/dataset``: 256², about 70 training and 10 held-out views). Each
-method trains in a fresh process; evaluation time is not counted in steps/s.
+Every DATA_DIR is a dataset folder ``mlx3d.datasets.load_dataset`` reads, its
+folder name the scene's name; ``--suite DIR`` adds every dataset folder in
+DIR (``bench/scenes.py`` generates the benchmark set into ``bench_data/``).
+The README's single-scene numbers use the captured demo scene (``make demo``
+writes it to ``demo_out/dataset``: 256², about 70 training and 10 held-out
+views).
+
+Each scene x method x variant trains in a fresh process and is evaluated on
+the held-out views at every milestone (``--steps N`` is one milestone);
+evaluation time is not counted in the train time or steps/s. Variants:
+``plain``, and ``grid`` with the per-image bilateral grid (``--bilateral-grid``
+adds it beside ``plain``). ``--max-gaussians`` is passed to the trainer only
+when given (otherwise each method's own default: vanilla grows without a cap,
+MCMC keeps its initial count). ``--jobs N`` trains N runs at once, splitting
+the cores between them (``MLX3D_NUM_THREADS``), which changes steps/s.
+
+Per run the table gives the held-out PSNR, SSIM and colour-corrected PSNR
+(CC-PSNR: after the affine colour map that best fits each render to its photo,
+see ``mlx3d.training.colour``) as the mean over the views and the worst view,
+the final number of Gaussians, steps/s, peak resident memory and train time.
+The worst held-out view (lowest PSNR) of every run is saved as a side-by-side
+PNG (ground truth | render) in the output folder, with ``results.json``
+(every row, the machine and its load average during the run).
+
 Anchor (OpenSplat 1.1.5, CPU mode, same machine, a similar scene): 2.8 steps/s
 on average over 2000 steps (0.44 s/step at 32k Gaussians), 3.6 GB peak, 28.1 dB
 after 1000 and 31.3 dB after 2000 steps on a held-out view.
@@ -18,66 +40,323 @@ import argparse
 import json
 import os
 import platform
+import statistics
 import subprocess
 import sys
+import threading
 import time
 
 from common import emit, peak_rss_mb  # bench/ is on sys.path when run as a script
 
+VARIANTS = ("plain", "grid")
 
-def _child(data: str, method: str, milestones: list[int], max_gaussians: int | None, background: str) -> None:
-    from mlx3d.datasets import load_dataset
+
+# ------------------------------------------------------------------ one run (child process)
+def _no_points(dataset, scene: str) -> str | None:
+    """Why ``scene`` cannot be trained here, or None: without initial points there is nothing to start from (yet)."""
+    if dataset.points is None or len(dataset.points) < 2:
+        return (f"scene {scene!r} has no initial points (COLMAP points3D or nerfstudio ply_file_path); "
+                "bench/train.py has no random initialisation to start it from")
+    return None
+
+
+def _initial_model(dataset, scene: str):
     from mlx3d.splatting import GaussianModel
-    from mlx3d.training import GaussianTrainer, TrainerConfig
-    from mlx3d.training.evaluate import BACKGROUNDS, evaluate
 
-    dataset = load_dataset(data)
-    model = GaussianModel.from_points(dataset.points, dataset.point_colors, sh_degree=3)
-    config = TrainerConfig(method=method, steps=milestones[-1], max_gaussians=max_gaussians, background=BACKGROUNDS[background])
+    why = _no_points(dataset, scene)
+    if why:
+        raise ValueError(why)
+    return GaussianModel.from_points(dataset.points, dataset.point_colors, sh_degree=3)
+
+
+def _child(args) -> None:
+    from mlx3d.datasets import load_dataset
+    from mlx3d.training import GaussianTrainer, TrainerConfig
+    from mlx3d.training.evaluate import BACKGROUNDS, evaluate, render_view, save_side_by_side
+
+    scene, method, variant = args.scene, args.child, args.variant
+    label = f"{scene} {method} {variant}"
+    milestones = _milestones(args)
+    background = BACKGROUNDS[args.background]
+    dataset = load_dataset(args.data[0])
+    model = _initial_model(dataset, scene)
+    config = TrainerConfig(method=method, steps=milestones[-1], max_gaussians=args.max_gaussians, background=background,
+                           bilateral_grid=variant == "grid")
     trainer = GaussianTrainer(model, config, scene_extent=dataset.scene_extent())
-    rows, trained, done = [], 0.0, 0
+    trained, done = 0.0, 0
+    every = max(milestones[-1] // 10, 1)
+
+    def progress(i: int, total: int, info: dict) -> None:
+        step = done + i
+        if step % every == 0:
+            print(f"[{label}] step {step:,}/{milestones[-1]:,}  loss {info['loss']:.4f}  train PSNR {info['psnr']:.2f}  "
+                  f"{info['num_gaussians']:,} Gaussians  ({trained + time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
+
     for milestone in milestones:
         t0 = time.perf_counter()
-        trainer.fit(dataset, steps=milestone - done)
+        trainer.fit(dataset, steps=milestone - done, progress=progress)
         trained += time.perf_counter() - t0
         done = milestone
-        report = evaluate(trainer.model, dataset, "test", BACKGROUNDS[background])
-        rows.append({"steps": milestone, "seconds": trained, "steps_per_s": milestone / trained, "gaussians": len(trainer.model),
-                     "psnr": report["psnr"], "ssim": report["ssim"], "peak_mb": peak_rss_mb()})
-        print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
-    print(json.dumps(rows))
+        row = {"scene": scene, "method": method, "variant": variant, "steps": milestone, "seconds": trained,
+               "steps_per_s": milestone / max(trained, 1e-9), "gaussians": len(trainer.model)}
+        if dataset.test:
+            t1 = time.perf_counter()
+            report = evaluate(trainer.model, dataset, "test", background)
+            views = report["views"]
+            row.update({
+                "views": len(views),
+                "psnr": report["psnr"], "psnr_worst": report["worst"]["psnr"], "worst_view": report["worst"]["name"],
+                "ssim": report["ssim"], "ssim_worst": min(v["ssim"] for v in views),
+                "cc_psnr": report["cc_psnr"], "cc_psnr_worst": report["cc_worst"]["cc_psnr"], "cc_worst_view": report["cc_worst"]["name"],
+                "cc_ssim": report["cc_ssim"], "eval_seconds": time.perf_counter() - t1,
+            })
+            if milestone == milestones[-1]:
+                index = next(i for i in dataset.test if dataset.frames[i].name == report["worst"]["name"])
+                target, image = render_view(trainer.model, dataset, index, background)
+                os.makedirs(args.out, exist_ok=True)
+                row["worst_png"] = os.path.join(args.out, f"{scene}_{method}_{variant}_worst.png")
+                save_side_by_side(row["worst_png"], target, image)
+        row["peak_rss_mb"] = peak_rss_mb()
+        print(json.dumps(row), flush=True)
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("data", metavar="DATA_DIR")
-    parser.add_argument("--milestones", default="1000,3000,7000")
-    parser.add_argument("--methods", default="vanilla,mcmc")
-    parser.add_argument("--max-gaussians", type=int, default=100_000)
-    parser.add_argument("--background", choices=("black", "white"), default="white")
-    parser.add_argument("--markdown", metavar="PATH")
-    parser.add_argument("--child", metavar="METHOD", help=argparse.SUPPRESS)
-    args = parser.parse_args()
-    milestones = sorted(int(m) for m in args.milestones.split(","))
-    if args.child:
-        _child(args.data, args.child, milestones, args.max_gaussians, args.background)
-        return
-    results = {}
-    for method in args.methods.split(","):
-        cmd = [sys.executable, __file__, args.data, "--child", method, "--milestones", args.milestones, "--max-gaussians", str(args.max_gaussians), "--background", args.background]
-        out = subprocess.run(cmd, stdout=subprocess.PIPE, text=True, check=True)
-        results[method] = json.loads(out.stdout.strip().splitlines()[-1])
+# ------------------------------------------------------------------ the machine and its load
+def _machine_line(jobs: int) -> str:
+    from mlx3d.report.accuracy import machine_info
+
+    m = machine_info()
+    memory = f", {m['memory_gb']:.0f} GB memory" if m.get("memory_gb") else ""
+    threads = max(1, (m["cores"] or 1) // jobs)
+    at_once = "one run at a time" if jobs == 1 else f"{jobs} runs at a time, {threads} thread{'s' if threads > 1 else ''} each"
+    return (f"{m['cpu']} ({m['machine']}, {m['cores']} cores{memory}), {m['platform']}; Python {m['python']}, MLX {m['mlx']} "
+            f"({m['mlx_device']}), render backend {m['backend']}; {at_once}")
+
+
+class LoadSampler(threading.Thread):
+    """Samples the 1-minute load average every few seconds while the benchmark runs."""
+
+    def __init__(self, every: float = 5.0):
+        super().__init__(daemon=True)
+        self.every, self.samples, self.stop = every, [], threading.Event()
+
+    def sample(self) -> None:
+        try:
+            self.samples.append(os.getloadavg()[0])
+        except (OSError, AttributeError):
+            pass
+
+    def run(self) -> None:
+        self.sample()
+        while not self.stop.wait(self.every):
+            self.sample()
+
+    def summary(self) -> dict:
+        s = self.samples
+        return {"n": len(s), "median": statistics.median(s), "min": min(s), "max": max(s)} if s else {"n": 0}
+
+    def line(self, cores: int, jobs: int) -> str:
+        load = self.summary()
+        if not load["n"]:
+            return "load average not available"
+        text = f"1-minute load average during the run: median {load['median']:.1f}, range {load['min']:.1f}-{load['max']:.1f} on {cores} cores"
+        if load["median"] > jobs + 0.5 * cores:  # more than this benchmark's own runs: other work shared the machine
+            text += " (a shared machine: other processes ran beside the benchmark, so times are slower and noisier than on an idle one)"
+        return text
+
+
+# ------------------------------------------------------------------ driver
+def _milestones(args) -> list[int]:
+    if args.steps is not None:
+        return [args.steps]
+    return sorted({int(m) for m in args.milestones.split(",")})
+
+
+def _scenes(args) -> list[tuple[str, str]]:
+    """(name, folder) of every scene: the DATA_DIRs, then the dataset folders of --suite (sorted by name)."""
+    from mlx3d.datasets.detect import detect_format
+
+    folders = list(args.data)
+    if args.suite:
+        for name in sorted(os.listdir(args.suite)):
+            path = os.path.join(args.suite, name)
+            if not os.path.isdir(path):
+                continue
+            try:
+                detect_format(path)
+            except Exception:
+                print(f"--suite: skipping {path} (not a dataset folder)", file=sys.stderr)
+                continue
+            folders.append(path)
+    scenes, seen = [], set()
+    for folder in folders:
+        name = os.path.basename(os.path.normpath(os.path.abspath(folder)))
+        while name in seen:
+            name += "'"
+        seen.add(name)
+        scenes.append((name, folder))
+    return scenes
+
+
+def _cell(row: dict, key: str, fmt: str) -> str:
+    return "" if row.get(key) is None else format(row[key], fmt)
+
+
+def _table(rows: list, header: str) -> str:
     lines = [
-        f"Training on {os.path.basename(os.path.abspath(args.data))} ({platform.machine()}, {os.cpu_count()} cores; cap {args.max_gaussians:,} Gaussians)",
-        "",
-        "| method | steps | train time (s) | steps/s | Gaussians | held-out PSNR (dB) | held-out SSIM | peak RSS (MB) |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|",
+        header, "",
+        "| scene | method | variant | steps | PSNR mean (dB) | PSNR worst | SSIM mean | SSIM worst | CC-PSNR mean (dB) | CC-PSNR worst | Gaussians | steps/s | peak RSS (MB) | train time (s) |",
+        "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
-    for method, rows in results.items():
-        for r in rows:
-            lines.append(f"| {method} | {r['steps']:,} | {r['seconds']:.0f} | {r['steps_per_s']:.2f} | {r['gaussians']:,} | {r['psnr']:.2f} | {r['ssim']:.4f} | {r['peak_mb']:.0f} |")
-    emit("\n".join(lines) + "\n", args.markdown)
+    for r in rows:
+        if "error" in r:
+            lines.append(f"| {r['scene']} | {r['method']} | {r['variant']} | failed: {r['error']} | | | | | | | | | | |")
+            continue
+        lines.append(
+            f"| {r['scene']} | {r['method']} | {r['variant']} | {r['steps']:,} | {_cell(r, 'psnr', '.2f')} | {_cell(r, 'psnr_worst', '.2f')} | "
+            f"{_cell(r, 'ssim', '.4f')} | {_cell(r, 'ssim_worst', '.4f')} | {_cell(r, 'cc_psnr', '.2f')} | {_cell(r, 'cc_psnr_worst', '.2f')} | "
+            f"{r['gaussians']:,} | {r['steps_per_s']:.2f} | {r['peak_rss_mb']:.0f} | {r['seconds']:{'.0f' if r['seconds'] >= 100 else '.1f'}} |"
+        )
+    worst = [r for r in rows if r.get("worst_png")]
+    if worst:
+        lines += ["", "Worst held-out view of each run (ground truth | render):", ""]
+        lines += [f"- {r['scene']} {r['method']} {r['variant']}: {r['worst_view']}, {r['psnr_worst']:.2f} dB "
+                  f"(CC {r['cc_psnr_worst']:.2f} dB on {r['cc_worst_view']}) - `{r['worst_png']}`" for r in worst]
+    return "\n".join(lines) + "\n"
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("data", nargs="*", metavar="DATA_DIR", help="dataset folders, one scene each (the folder name is the scene's)")
+    parser.add_argument("--suite", metavar="DIR", help="also every dataset folder in DIR (e.g. bench_data)")
+    parser.add_argument("--methods", default="vanilla,mcmc", help="comma-separated: vanilla, mcmc, 2dgs (default vanilla,mcmc)")
+    parser.add_argument("--steps", type=int, default=None, metavar="N", help="train N steps (one milestone; replaces --milestones)")
+    parser.add_argument("--milestones", default="1000,3000,7000", help="evaluate after these steps (default 1000,3000,7000)")
+    parser.add_argument("--variants", default="plain", help="comma-separated: plain, grid (with the bilateral grid); default plain")
+    parser.add_argument("--bilateral-grid", action="store_true", help="also run every method with the bilateral grid (adds the grid variant)")
+    parser.add_argument("--max-gaussians", type=int, default=None, metavar="N", help="Gaussian cap passed to the trainer (default: the method's own)")
+    parser.add_argument("--background", choices=("black", "white"), default="white", help="colour behind the renders and images with alpha (default white)")
+    parser.add_argument("--jobs", type=int, default=1, help="runs trained at once, the cores split between them (default 1)")
+    parser.add_argument("--out", default=os.path.join("bench", "out", "train"), metavar="DIR", help="worst-view PNGs and results.json (default bench/out/train)")
+    parser.add_argument("--markdown", metavar="PATH", help="also write the table here")
+    parser.add_argument("--child", metavar="METHOD", help=argparse.SUPPRESS)
+    parser.add_argument("--scene", help=argparse.SUPPRESS)
+    parser.add_argument("--variant", default="plain", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.child:
+        try:
+            _child(args)
+        except (ValueError, OSError) as exc:  # a bad scene: one clear line (the parent puts it in the table)
+            print(f"error: {exc}", file=sys.stderr)
+            return 1
+        return 0
+
+    methods = [m for m in args.methods.split(",") if m]
+    variants = [v for v in args.variants.split(",") if v]
+    if args.bilateral_grid and "grid" not in variants:
+        variants.append("grid")
+    from mlx3d.training.trainer import METHODS
+
+    for m in methods:
+        if m not in METHODS:
+            parser.error(f"unknown method {m!r}; use {', '.join(METHODS)}")
+    for v in variants:
+        if v not in VARIANTS:
+            parser.error(f"unknown variant {v!r}; use {', '.join(VARIANTS)}")
+    if args.steps is not None and args.steps < 1:
+        parser.error("--steps must be at least 1")
+    try:
+        milestones = _milestones(args)
+    except ValueError:
+        parser.error(f"--milestones takes comma-separated step counts, got {args.milestones!r}")
+    if not milestones or milestones[0] < 1:
+        parser.error("milestones must be at least 1")
+    scenes = _scenes(args)
+    if not scenes:
+        parser.error("no scenes: give DATA_DIRs or --suite DIR")
+
+    # Scenes that cannot be trained fail once here instead of once per method and variant.
+    from mlx3d.datasets import load_dataset
+
+    refused = {}
+    for scene, folder in scenes:
+        try:
+            refused[scene] = _no_points(load_dataset(folder), scene)
+        except (ValueError, OSError) as exc:
+            refused[scene] = str(exc)
+        if refused[scene]:
+            print(f"{scene}: {refused[scene]}", file=sys.stderr)
+    runs = [(scene, folder, method, variant) for scene, folder in scenes if not refused[scene] for method in methods for variant in variants]
+    jobs = max(1, min(args.jobs, len(runs) or 1))
+    env = dict(os.environ, MLX3D_NUM_THREADS=str(max(1, (os.cpu_count() or 1) // jobs))) if jobs > 1 else None
+    results, slots, failed = {}, threading.Semaphore(jobs), []
+    load = LoadSampler()
+    load.start()
+    started = time.perf_counter()
+
+    def run(key) -> None:
+        scene, folder, method, variant = key
+        with slots:
+            cmd = [sys.executable, os.path.abspath(__file__), folder, "--child", method, "--scene", scene, "--variant", variant,
+                   "--background", args.background, "--out", args.out]
+            cmd += ["--steps", str(args.steps)] if args.steps is not None else ["--milestones", args.milestones]
+            if args.max_gaussians is not None:
+                cmd += ["--max-gaussians", str(args.max_gaussians)]
+            proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+            rows, tail = [], []
+
+            def drain_stderr() -> None:  # pass progress on, keep the end for the error message
+                for line in proc.stderr:
+                    sys.stderr.write(line)
+                    tail[:] = (tail + [line.rstrip()])[-20:]
+
+            reader = threading.Thread(target=drain_stderr, daemon=True)
+            reader.start()
+            for line in proc.stdout:
+                rows.append(json.loads(line))
+                r = rows[-1]
+                psnr = f"PSNR {r['psnr']:.2f} (worst {r['psnr_worst']:.2f}) CC-PSNR {r['cc_psnr']:.2f}" if "psnr" in r else "no held-out views"
+                print(f"{scene} {method} {variant}: step {r['steps']:,} {psnr}, {r['gaussians']:,} Gaussians, "
+                      f"{r['steps_per_s']:.2f} steps/s", file=sys.stderr, flush=True)
+            code = proc.wait()
+            reader.join()
+            if code != 0:
+                message = next((t for t in reversed(tail) if t and not t.startswith(" ")), f"exit code {code}").removeprefix("error: ")
+                rows.append({"scene": scene, "method": method, "variant": variant, "error": message.replace("|", "/")})
+                failed.append(key)
+            results[key] = rows
+
+    threads = [threading.Thread(target=run, args=(key,)) for key in runs]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    load.stop.set()
+    load.join()
+    elapsed = time.perf_counter() - started
+    rows = []
+    for scene, _ in scenes:
+        if refused[scene]:
+            rows.append({"scene": scene, "method": "all", "variant": "all", "error": refused[scene].replace("|", "/")})
+        rows += [r for key in runs if key[0] == scene for r in results.get(key, [])]
+    cores = os.cpu_count() or 1
+    steps = f"{milestones[-1]:,} steps" if len(milestones) == 1 else f"milestones {', '.join(f'{m:,}' for m in milestones)}"
+    cap = f"cap {args.max_gaussians:,} Gaussians" if args.max_gaussians is not None else "each method's default Gaussian budget"
+    header = "\n".join([
+        f"Training on {', '.join(s for s, _ in scenes)}: {steps}, {args.background} background, {cap}; {len(runs)} run{'s' if len(runs) != 1 else ''} in {elapsed / 60:.1f} min",
+        "",
+        f"Machine: {_machine_line(jobs)}.",
+        "",
+        f"Load: {load.line(cores, jobs)}.",
+    ])
+    table = _table(rows, header)
+    os.makedirs(args.out, exist_ok=True)
+    with open(os.path.join(args.out, "results.json"), "w") as f:
+        json.dump({"machine": _machine_line(jobs), "platform": platform.platform(), "load": load.summary(), "jobs": jobs,
+                   "milestones": milestones, "background": args.background, "max_gaussians": args.max_gaussians,
+                   "seconds": elapsed, "rows": rows}, f, indent=2)
+    emit(table, args.markdown)
+    return 1 if failed or any(refused.values()) else 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())
