@@ -2,8 +2,9 @@
 
 A dataset is a folder ``mlx3d.datasets.load_dataset`` reads (COLMAP,
 NeRF-synthetic or nerfstudio; a folder written by ``capture`` is both COLMAP
-and nerfstudio). Training starts from the dataset's initial points
-(``GaussianModel.from_points``) and runs ``mlx3d.training.GaussianTrainer``;
+and nerfstudio). Training starts from ``mlx3d.training.initial.initial_state``
+(the dataset's points, or random ones when it has none; the method's initial
+opacity and scale; MCMC's default budget) and runs ``mlx3d.training.GaussianTrainer``;
 views are drawn at random from the training split by ``GaussianTrainer.fit``,
 which also composites each target on the colour the render uses.
 
@@ -36,6 +37,7 @@ from mlx3d.datasets import Dataset, load_dataset
 from mlx3d.io import write_splat_ply
 from mlx3d.splatting import GaussianModel
 from mlx3d.training import GaussianTrainer, TrainerConfig
+from mlx3d.training.initial import initial_state
 from mlx3d.training.metrics import psnr
 
 from .splat_object import create_splat_object, replace_splats
@@ -111,7 +113,8 @@ class TrainSession:
     data: a dataset folder (or a ``transforms*.json`` path), or a loaded ``Dataset``.
     method: one of ``METHODS`` (see ``TrainerConfig``); steps: total training steps
     (the learning-rate and density schedules are laid out over them);
-    max_gaussians: cap on the number of Gaussians (None: no cap; initial points
+    max_gaussians: cap on the number of Gaussians (None: no cap for vanilla and
+    2dgs, ``mlx3d.training.initial.mcmc_budget`` for mcmc; initial points
     beyond it are subsampled, seeded); sh_degree: SH degree of the model (the
     active degree grows every ``sh_degree_interval`` steps); background:
     ``'black'``, ``'white'``, ``'random'`` or (r, g, b), the colour renders
@@ -166,33 +169,22 @@ class TrainSession:
         where = str(dataset.root) if dataset.root is not None else "the dataset"
         if not dataset.train:
             raise TrainError(f"{where}: the dataset has no training views")
-        points, colours = dataset.points, dataset.point_colors
-        if points is None or len(points) == 0:
-            raise TrainError(
-                f"{where}: the dataset has no initial points (COLMAP points3D, or a nerfstudio 'ply_file_path'); "
-                "training starts from a point cloud"
-            )
-        if len(points) < 2:
-            raise TrainError(f"{where}: the dataset has only {len(points)} initial point; training needs at least 2")
-        self.notes: list = []
-        if max_gaussians is not None and len(points) > max_gaussians:
-            keep = np.sort(np.random.default_rng(seed).choice(len(points), max_gaussians, replace=False))
-            self.notes.append(f"started from {max_gaussians:,} of the dataset's {len(points):,} points (max Gaussians)")
-            points = points[keep]
-            colours = None if colours is None else colours[keep]
         try:
             config = TrainerConfig(method=method, steps=steps, max_gaussians=max_gaussians, background=background, seed=seed, **trainer_overrides)
         except TypeError as exc:
             known = ", ".join(f for f in TrainerConfig.__dataclass_fields__)
             raise TrainError(f"bad trainer setting ({exc}); TrainerConfig fields are: {known}") from None
+        except ValueError as exc:
+            raise TrainError(f"bad trainer setting: {exc}") from None
+        start = initial_state(dataset, config, sh_degree=sh_degree)
 
         self.dataset = dataset
         self.where = where
         self.name = name
         self.collection = collection
         self.update_every = every
-        model = GaussianModel.from_points(points, colours, sh_degree=sh_degree, seed=seed)
-        self.trainer = GaussianTrainer(model, config, scene_extent=dataset.scene_extent())
+        self.notes: list = list(start.notes)
+        self.trainer = GaussianTrainer(start.model, start.config, scene_extent=dataset.scene_extent())
         self.object = None
         self.object_step = None  # training step of the state the object holds
         self.losses: list = []

@@ -2,7 +2,7 @@
 
     python bench/train.py DATA_DIR [DATA_DIR ...] [--suite DIR] [--methods vanilla,mcmc]
                           [--steps N | --milestones 1000,3000,7000] [--variants plain,grid | --bilateral-grid]
-                          [--max-gaussians N] [--background white|black] [--jobs N]
+                          [--max-gaussians N] [--random-points N] [--background white|black] [--jobs N]
                           [--out bench/out/train] [--markdown PATH]
 
 Every DATA_DIR is a dataset folder ``mlx3d.datasets.load_dataset`` reads, its
@@ -18,7 +18,9 @@ evaluation time is not counted in the train time or steps/s. Variants:
 ``plain``, and ``grid`` with the per-image bilateral grid (``--bilateral-grid``
 adds it beside ``plain``). ``--max-gaussians`` is passed to the trainer only
 when given (otherwise each method's own default: vanilla grows without a cap,
-MCMC keeps its initial count). ``--jobs N`` trains N runs at once, splitting
+MCMC grows to ``mlx3d.training.initial.mcmc_budget``). Every run starts from
+``mlx3d.training.initial.initial_state``, as ``mlx3d train`` does (a scene
+without points from ``--random-points`` random ones). ``--jobs N`` trains N runs at once, splitting
 the cores between them (``MLX3D_NUM_THREADS``), which changes steps/s.
 
 Per run the table gives the held-out PSNR, SSIM and colour-corrected PSNR
@@ -52,37 +54,23 @@ VARIANTS = ("plain", "grid")
 
 
 # ------------------------------------------------------------------ one run (child process)
-def _no_points(dataset, scene: str) -> str | None:
-    """Why ``scene`` cannot be trained here, or None: without initial points there is nothing to start from (yet)."""
-    if dataset.points is None or len(dataset.points) < 2:
-        return (f"scene {scene!r} has no initial points (COLMAP points3D or nerfstudio ply_file_path); "
-                "bench/train.py has no random initialisation to start it from")
-    return None
-
-
-def _initial_model(dataset, scene: str):
-    from mlx3d.splatting import GaussianModel
-
-    why = _no_points(dataset, scene)
-    if why:
-        raise ValueError(why)
-    return GaussianModel.from_points(dataset.points, dataset.point_colors, sh_degree=3)
-
-
 def _child(args) -> None:
     from mlx3d.datasets import load_dataset
     from mlx3d.training import GaussianTrainer, TrainerConfig
     from mlx3d.training.evaluate import BACKGROUNDS, evaluate, render_view, save_side_by_side
+    from mlx3d.training.initial import initial_state
 
     scene, method, variant = args.scene, args.child, args.variant
     label = f"{scene} {method} {variant}"
     milestones = _milestones(args)
     background = BACKGROUNDS[args.background]
     dataset = load_dataset(args.data[0])
-    model = _initial_model(dataset, scene)
     config = TrainerConfig(method=method, steps=milestones[-1], max_gaussians=args.max_gaussians, background=background,
-                           bilateral_grid=variant == "grid")
-    trainer = GaussianTrainer(model, config, scene_extent=dataset.scene_extent())
+                           bilateral_grid=variant == "grid", init_random_points=args.random_points)
+    start = initial_state(dataset, config)
+    for note in start.notes:
+        print(f"[{label}] {note}", file=sys.stderr, flush=True)
+    trainer = GaussianTrainer(start.model, start.config, scene_extent=dataset.scene_extent())
     trained, done = 0.0, 0
     every = max(milestones[-1] // 10, 1)
 
@@ -234,6 +222,8 @@ def main() -> int:
     parser.add_argument("--variants", default="plain", help="comma-separated: plain, grid (with the bilateral grid); default plain")
     parser.add_argument("--bilateral-grid", action="store_true", help="also run every method with the bilateral grid (adds the grid variant)")
     parser.add_argument("--max-gaussians", type=int, default=None, metavar="N", help="Gaussian cap passed to the trainer (default: the method's own)")
+    parser.add_argument("--random-points", type=int, default=100_000, metavar="N",
+                        help="scenes without points start from N random ones (default 100000, as the 3DGS reference)")
     parser.add_argument("--background", choices=("black", "white"), default="white", help="colour behind the renders and images with alpha (default white)")
     parser.add_argument("--jobs", type=int, default=1, help="runs trained at once, the cores split between them (default 1)")
     parser.add_argument("--out", default=os.path.join("bench", "out", "train"), metavar="DIR", help="worst-view PNGs and results.json (default bench/out/train)")
@@ -274,13 +264,13 @@ def main() -> int:
     if not scenes:
         parser.error("no scenes: give DATA_DIRs or --suite DIR")
 
-    # Scenes that cannot be trained fail once here instead of once per method and variant.
+    # Scenes that cannot be loaded fail once here instead of once per method and variant.
     from mlx3d.datasets import load_dataset
 
     refused = {}
     for scene, folder in scenes:
         try:
-            refused[scene] = _no_points(load_dataset(folder), scene)
+            refused[scene] = None if load_dataset(folder).train else "no training views"
         except (ValueError, OSError) as exc:
             refused[scene] = str(exc)
         if refused[scene]:
@@ -301,6 +291,7 @@ def main() -> int:
             cmd += ["--steps", str(args.steps)] if args.steps is not None else ["--milestones", args.milestones]
             if args.max_gaussians is not None:
                 cmd += ["--max-gaussians", str(args.max_gaussians)]
+            cmd += ["--random-points", str(args.random_points)]
             proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
             rows, tail = [], []
 

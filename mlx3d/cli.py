@@ -227,9 +227,9 @@ def _background_arg(text: str):
 
 def cmd_train(args) -> None:
     from .datasets import load_dataset
-    from .splatting import GaussianModel
     from .training import GaussianTrainer, TrainerConfig
     from .training.evaluate import evaluate
+    from .training.initial import initial_state
 
     with step(f"loading {args.data}"):
         dataset = load_dataset(args.data, factor=args.factor)
@@ -238,15 +238,17 @@ def cmd_train(args) -> None:
     config = TrainerConfig(
         method=args.method, steps=args.steps, max_gaussians=args.max_gaussians, background=_background_arg(args.background),
         seed=args.seed, checkpoint_every=args.checkpoint_every, checkpoint_dir=out_dir, bilateral_grid=args.bilateral_grid,
+        init_random_points=args.random_points, init_background_points=args.background_points,
     )
     if args.resume:
         trainer = GaussianTrainer.load_checkpoint(args.resume, config)
         print(f"resumed at step {trainer.step_count} from {args.resume}")
     else:
-        if dataset.points is None or len(dataset.points) < 2:
-            raise Mlx3dError(f"{args.data} has no initial points (COLMAP points3D or nerfstudio ply_file_path) to start from")
-        model = GaussianModel.from_points(dataset.points, dataset.point_colors, sh_degree=args.sh_degree)
-        trainer = GaussianTrainer(model, config, scene_extent=dataset.scene_extent())
+        with step("building the initial model"):
+            start = initial_state(dataset, config, sh_degree=args.sh_degree)
+        for note in start.notes:
+            print(note)
+        trainer = GaussianTrainer(start.model, start.config, scene_extent=dataset.scene_extent())
     remaining = max(args.steps - trainer.step_count, 0)
     try:
         trainer.fit(dataset, steps=remaining, progress=TrainProgress())
@@ -422,7 +424,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, metavar="OUT.ply")
     p.add_argument("--method", choices=METHODS, default="vanilla", help="vanilla, mcmc or 2dgs (surfels, for mesh extraction)")
     p.add_argument("--steps", type=int, default=30000)
-    p.add_argument("--max-gaussians", type=int, default=None, metavar="N", help="vanilla: stop growth at N; mcmc: grow to N")
+    p.add_argument("--max-gaussians", type=int, default=None, metavar="N", help="vanilla: stop growth at N; mcmc: grow to N (default: one per pixel of a training image, at least twice the initial count)")
     p.add_argument("--sh-degree", type=int, choices=(0, 1, 2, 3), default=3)
     p.add_argument("--background", choices=("black", "white", "random"), default="black", help="colour behind images with alpha")
     p.add_argument("--factor", type=float, default=1, help="image downscale factor (uses images_N when present)")
@@ -431,6 +433,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resume", metavar="CHECKPOINT.npz", help="continue from a checkpoint")
     p.add_argument("--eval", action="store_true", help="evaluate the held-out views at the end")
     p.add_argument("--bilateral-grid", action="store_true", help="per-image colour grid for exposure/white-balance differences")
+    p.add_argument("--random-points", type=int, default=100_000, metavar="N",
+                   help="a dataset without points starts from N random points in a cube around what the cameras look at (default 100000)")
+    p.add_argument("--background-points", type=int, default=None, metavar="N",
+                   help="N points on a far sphere seed a backdrop (default: mcmc on opaque photos only; 0: none)")
 
     p = add("eval", cmd_eval, "PSNR and SSIM of a splat PLY on a dataset's held-out views, plain and colour-corrected (CC: after the best affine colour map per view); the worst view; side-by-side renders.")
     p.add_argument("model", metavar="MODEL.ply")

@@ -33,10 +33,11 @@ def dataset_dir(tmp_path):
     return tmp_path
 
 
-@pytest.mark.parametrize("method", ["vanilla", "mcmc"])
-def test_train_then_eval(dataset_dir, tmp_path_factory, capsys, method):
+# MCMC starts from Gaussians a tenth of the neighbour distance (as gsplat's MCMC preset): more steps to cover the views
+@pytest.mark.parametrize("method,steps", [("vanilla", 60), ("mcmc", 240)])
+def test_train_then_eval(dataset_dir, tmp_path_factory, capsys, method, steps):
     out = tmp_path_factory.mktemp("out")
-    code = main(["train", str(dataset_dir), "--out", str(out / "model.ply"), "--steps", "60", "--method", method, "--max-gaussians", "200", "--eval", "--checkpoint-every", "30"])
+    code = main(["train", str(dataset_dir), "--out", str(out / "model.ply"), "--steps", str(steps), "--method", method, "--max-gaussians", "200", "--eval", "--checkpoint-every", "30"])
     assert code == 0
     err = capsys.readouterr().err
     assert "steps/s" in err and "ETA" in err

@@ -128,6 +128,9 @@ def load_nerf_synthetic(path, factor=1, *, val_in_train: bool = False, **dataset
     the folder, ``.png`` is appended when it has no extension.
     Splits are the files' own: ``train``, ``val`` and ``test``
     (``val_in_train=True`` adds the val frames to ``train``).
+    ``ply_file_path`` in ``transforms_train.json`` (relative to the folder, as
+    in nerfstudio) gives initial points; without it the dataset has none and
+    training starts from random points (``mlx3d.training.initial``).
     factor: downscale factor; images are resized on load (Pillow) and the
         cameras scaled to match. The scenes' RGBA images are composited or
         weighted by :meth:`Dataset.load_image`.
@@ -142,10 +145,13 @@ def load_nerf_synthetic(path, factor=1, *, val_in_train: bool = False, **dataset
         raise DatasetError(f"{files['train']}: file not found")
     frames: list[Frame] = []
     splits: dict[str, list[int]] = {}
+    points = colors = None
     for split, jpath in files.items():
         if not jpath.is_file():
             continue
         meta = read_json(jpath)
+        if split == "train":
+            points, colors = _initial_points(meta, root, jpath)
         entries = _frames(meta, jpath)
         angle = _number(meta, "camera_angle_x", str(jpath), required=True)
         if not 0.0 < angle < math.pi:
@@ -171,7 +177,17 @@ def load_nerf_synthetic(path, factor=1, *, val_in_train: bool = False, **dataset
     if val_in_train:
         splits["train"] = splits["train"] + splits.get("val", [])
     splits.setdefault("test", [])
-    return Dataset(frames, splits=splits, root=root, kind="nerf_synthetic", factor=f, **dataset_kw)
+    return Dataset(frames, splits=splits, points=points, point_colors=colors, root=root, kind="nerf_synthetic", factor=f, **dataset_kw)
+
+
+def _initial_points(meta: dict, root: Path, jpath: Path):
+    """The points a transforms file's ``ply_file_path`` names: (xyz, rgb or None), or (None, None) without one."""
+    ply = meta.get("ply_file_path")
+    if ply is None:
+        return None, None
+    if not isinstance(ply, str):
+        raise DatasetError(f"{jpath}: ply_file_path must be a string")
+    return read_points_ply(_norm(root, ply))
 
 
 # -- nerfstudio
@@ -321,11 +337,6 @@ def load_nerfstudio(path, factor=1, *, test_every: int | None = 8, **dataset_kw)
         if "val" in idx:
             splits["val"] = idx["val"]
 
-    points = colors = None
-    ply = meta.get("ply_file_path")
-    if ply is not None:
-        if not isinstance(ply, str):
-            raise DatasetError(f"{jpath}: ply_file_path must be a string")
-        points, colors = read_points_ply(_norm(root, ply))
+    points, colors = _initial_points(meta, root, jpath)
     return Dataset(frames, splits=splits, test_every=test_every, points=points, point_colors=colors,
                    root=root, kind="nerfstudio", factor=f, **dataset_kw)

@@ -153,15 +153,19 @@ def _sample_by_opacity(opacity: np.ndarray, count: int, rng) -> np.ndarray:
     return rng.choice(len(p), size=count, replace=True, p=p)
 
 
-def _apply_copies(params: dict, optimizer, sources: np.ndarray, targets: np.ndarray) -> dict:
+def _apply_copies(params: dict, optimizer, sources: np.ndarray, targets: np.ndarray, min_opacity: float) -> dict:
     """Copy ``sources`` rows onto ``targets`` rows (and into themselves) with the corrected
-    opacity/scale for the number of copies each source now has; zero their moments."""
+    opacity/scale for the number of copies each source now has; zero their moments.
+
+    The corrected opacity is kept above ``min_opacity`` (as the reference implementation
+    does): a copy born "dead" would be relocated again at the next event."""
     n = params["means"].shape[0]
     copies = np.bincount(sources, minlength=n) + 1  # the source itself plus its new copies
     srcs = np.unique(sources)
     opacity = 1.0 / (1.0 + np.exp(-np.array(params["opacities"], dtype=np.float64)))
     scales = np.exp(np.array(params["scales"], dtype=np.float64))
     new_o, new_s = relocation_correction(opacity[srcs], scales[srcs], copies[srcs])
+    new_o = np.clip(new_o, min_opacity, 1.0 - np.finfo(np.float32).eps)
     logit = np.log(new_o / (1.0 - new_o))
     out = {k: np.array(v) for k, v in params.items()}
     out["opacities"][srcs] = logit
@@ -193,7 +197,7 @@ def relocate_dead(params: dict, optimizer=None, min_opacity: float = 0.005, rng=
     if dead.size == 0 or alive.size == 0:
         return params, 0
     sources = alive[_sample_by_opacity(opacity[alive], dead.size, rng)]
-    out = _apply_copies(params, optimizer, sources, dead)
+    out = _apply_copies(params, optimizer, sources, dead, min_opacity)
     if jitter_scale > 0:
         rot = np.array(quaternion_to_matrix(np.array(out["quats"], dtype=np.float64)[dead]))
         std = np.exp(np.array(out["scales"], dtype=np.float64)[dead])
@@ -204,9 +208,11 @@ def relocate_dead(params: dict, optimizer=None, min_opacity: float = 0.005, rng=
     return out, int(dead.size)
 
 
-def add_gaussians_mcmc(params: dict, optimizer=None, cap: int | None = None, growth: float = 0.05, rng=None) -> tuple[dict, int]:
+def add_gaussians_mcmc(params: dict, optimizer=None, cap: int | None = None, growth: float = 0.05, rng=None,
+                       min_opacity: float = 0.005) -> tuple[dict, int]:
     """Grow by ``growth`` (fraction of N, up to ``cap``): new Gaussians are copies of ones
-    sampled in proportion to opacity, with the copy correction. Returns (params, added)."""
+    sampled in proportion to opacity, with the copy correction (opacity kept above
+    ``min_opacity``). Returns (params, added)."""
     rng = rng or np.random.default_rng(0)
     n = params["means"].shape[0]
     target = int(n * (1.0 + growth)) if cap is None else min(int(cap), int(n * (1.0 + growth)))
@@ -218,7 +224,7 @@ def add_gaussians_mcmc(params: dict, optimizer=None, cap: int | None = None, gro
     grown = _concat(params, _take(params, sources))
     if optimizer is not None:
         optimizer.append(add)
-    return _apply_copies(grown, optimizer, sources, np.arange(n, n + add)), add
+    return _apply_copies(grown, optimizer, sources, np.arange(n, n + add), min_opacity), add
 
 
 def sgld_noise(params: dict, lr_means: float, noise_scale: float = 5e5, rng=None) -> mx.array:

@@ -20,7 +20,7 @@ from __future__ import annotations
 import json
 import math
 import os
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import mlx.core as mx
 import numpy as np
@@ -63,7 +63,7 @@ class TrainerConfig:
     sh_rest_lr: float = 2.5e-3 / 20
     # adaptive density control
     densify_from: int = 500
-    densify_until: int = 15_000
+    densify_until: int | None = None  # None: 15,000 (vanilla, 2dgs, as 3DGS) or 25,000 (mcmc, as 3DGS-MCMC)
     densify_every: int = 100
     opacity_reset_every: int = 3000
     reset_recovery: int = 500  # no opacity reset in the last this many steps: the model needs them to recover
@@ -71,7 +71,14 @@ class TrainerConfig:
     percent_dense: float = 0.01
     prune_opacity: float = 0.005
     max_screen_size: float = 20.0  # pixels, applied after the first opacity reset
-    max_gaussians: int | None = None  # vanilla: stops growth; mcmc: the cap it grows to
+    max_gaussians: int | None = None  # vanilla: stops growth; mcmc: the cap it grows to (see training.initial.mcmc_budget)
+    # the initial model (see mlx3d.training.initial); None: the method's default
+    init_opacity: float | None = None  # 0.5 (mcmc) or 0.1
+    init_scale: float | None = None  # factor on the mean 3-NN distance: 0.1 (mcmc) or 1
+    init_random_points: int = 100_000  # a dataset without points starts from this many random ones
+    init_random_extent: float | None = None  # half-side of their cube (None: from the cameras)
+    init_background_points: int | None = None  # None: auto (mcmc on opaque photos); 0: none
+    init_background_radius: float = 10.0  # their sphere's radius, times the scene extent
     # 3DGS as Markov Chain Monte Carlo (method='mcmc'); relocation/growth run on the densify schedule
     mcmc_min_opacity: float = 0.005  # "dead" below this opacity
     mcmc_relocate_frac: float = 1.0  # at most this fraction of N relocated per event
@@ -104,6 +111,21 @@ class TrainerConfig:
         if self.steps < 1:
             raise ValueError(f"steps must be >= 1, got {self.steps}")
         surfels = self.method == "2dgs"
+        mcmc = self.method == "mcmc"
+        if self.densify_until is None:
+            self.densify_until = 25_000 if mcmc else 15_000
+        if self.init_opacity is None:
+            self.init_opacity = 0.5 if mcmc else 0.1
+        if self.init_scale is None:
+            self.init_scale = 0.1 if mcmc else 1.0
+        if not 0.0 < self.init_opacity < 1.0:
+            raise ValueError(f"init_opacity must be in (0, 1), got {self.init_opacity}")
+        if not self.init_scale > 0:
+            raise ValueError(f"init_scale must be > 0, got {self.init_scale}")
+        if self.init_random_points < 2:
+            raise ValueError(f"init_random_points must be >= 2, got {self.init_random_points}")
+        if self.max_gaussians is not None and self.max_gaussians < 2:
+            raise ValueError(f"max_gaussians must be >= 2 (or None), got {self.max_gaussians}")
         if self.lambda_2d_depth_variance is None:
             self.lambda_2d_depth_variance = 10.0 if surfels else 0.0
         if self.lambda_2d_normal_consistency is None:
@@ -318,7 +340,7 @@ class GaussianTrainer:
             self.model.params = params
             return moved
         if event == "grow":
-            params, added = add_gaussians_mcmc(self.model.params, self.optimizer, c.max_gaussians, c.mcmc_growth, self.rng) if c.max_gaussians else (self.model.params, 0)
+            params, added = add_gaussians_mcmc(self.model.params, self.optimizer, c.max_gaussians, c.mcmc_growth, self.rng, c.mcmc_min_opacity) if c.max_gaussians else (self.model.params, 0)
             if added:
                 self._set_params(params)
             return added
@@ -349,6 +371,10 @@ class GaussianTrainer:
             raise ValueError("the dataset has no training views")
         if self.config.bilateral_grid and self.bilateral is None:
             self._make_grid(len(dataset.frames))
+        if self.config.method == "mcmc" and self.config.max_gaussians is None:
+            from .initial import image_pixels, mcmc_budget
+
+            self.config = replace(self.config, max_gaussians=mcmc_budget(len(self.model), image_pixels(dataset)))
         history = []
         for i in range(steps):
             if should_stop is not None and should_stop():

@@ -212,16 +212,6 @@ def test_bad_input_is_a_clear_error_and_leaves_the_scene_alone(extension, clean_
         bpy.ops.mlx3d.train(directory=str(tmp_path / "empty"), steps=2)
     with pytest.raises(RuntimeError, match="choose a dataset folder"):
         bpy.ops.mlx3d.train(steps=2)  # no folder, none in the panel either
-    # A nerfstudio dataset without a point file.
-    bare = tmp_path / "bare"
-    shutil.copytree(dataset / "images", bare / "images")
-    meta = json.loads((dataset / "transforms.json").read_text())
-    del meta["ply_file_path"]
-    (bare / "transforms.json").write_text(json.dumps(meta))
-    with pytest.raises(RuntimeError, match="bare: the dataset has no initial points"):
-        bpy.ops.mlx3d.train(directory=str(bare), steps=2)
-    with pytest.raises(train.TrainError, match="no initial points"):
-        train.train_dataset(bare, steps=2)
     with pytest.raises(train.TrainError, match="not available"):
         train.TrainSession(dataset, steps=2, method="3dgs-fast")
     with pytest.raises(train.TrainError, match="TrainerConfig fields"):
@@ -229,6 +219,18 @@ def test_bad_input_is_a_clear_error_and_leaves_the_scene_alone(extension, clean_
     with pytest.raises(train.TrainError, match="folder .* does not exist"):
         train.train_dataset(dataset, steps=2, out_ply=tmp_path / "missing" / "x.ply")
     assert not splat_objects() and not bpy.data.pointclouds
+
+
+def test_a_dataset_without_points_starts_from_random_points(extension, clean_scene, dataset, tmp_path):
+    train = extension.addon.train
+    bare = tmp_path / "bare"  # a nerfstudio dataset without a point file
+    shutil.copytree(dataset / "images", bare / "images")
+    meta = json.loads((dataset / "transforms.json").read_text())
+    del meta["ply_file_path"]
+    (bare / "transforms.json").write_text(json.dumps(meta))
+    obj, messages = train.train_dataset(bare, steps=2, sh_degree=0, init_random_points=500)
+    assert len(obj.data.points) == 500
+    assert any("500 random points" in m and "the dataset has none" in m for m in messages)
 
 
 def test_train_dataset_stops_early_and_writes_the_result(extension, clean_scene, dataset, tmp_path):

@@ -1,0 +1,239 @@
+"""Where a training run starts: the initial Gaussians and the settings they imply.
+
+``initial_state(dataset, config, sh_degree)`` is the one way ``mlx3d train``,
+the add-on's Train operator and the benchmarks build the model a run starts
+from. It returns the model, a copy of the config with every "method default"
+resolved (so what runs is what is printed and saved) and notes for the user.
+
+- **Points.** The dataset's own (COLMAP ``points3D``, a ``ply_file_path`` in a
+  nerfstudio ``transforms.json`` or a NeRF-synthetic ``transforms_train.json``).
+  A dataset without points (the usual NeRF-synthetic layout) starts, as the
+  3DGS reference does, from ``init_random_points`` points drawn uniformly in a
+  cube with random colours (3DGS: 100k in [-1.3, 1.3]³ for lego, whose cameras
+  are 4 units from the origin). The cube is centred on the point nearest to
+  every training camera's optical axis (what the cameras look at) with a
+  half-side of ``init_random_extent`` or, by default, the half-width of the
+  narrowest view at the cameras' median distance from that point (1.45 for lego).
+- **Background.** When the training photos are opaque (no alpha, no mask),
+  the sky and whatever lies far away must be Gaussians too, and point clouds
+  rarely reach them (structure from motion finds no points in a plain sky).
+  Left to itself, MCMC builds that backdrop out of small Gaussians among the
+  cameras: a sky-coloured Gaussian next to a ring of cameras that see each
+  other against the sky fits every training view, is cheap under the scale
+  regulariser, and the position noise and opacity-weighted relocation
+  multiply it, so views off the ring look through a veil of it. Seeding the
+  backdrop far away removes the incentive: ``init_background_points`` points
+  on a sphere of radius ``init_background_radius`` × the scene extent around
+  the camera centroid, kept where a training view sees them and coloured by
+  the mean training pixel they project to. On by default for MCMC on opaque
+  photos (None); 0 turns it off, a count forces it for any method.
+- **Opacity and scale.** ``init_opacity`` and ``init_scale`` (a factor on the
+  mean distance to the 3 nearest points): 0.1 and 1 for vanilla and 2DGS as in
+  3DGS; 0.5 and 0.1 for MCMC, as in gsplat's MCMC preset (many
+  small, half-opaque Gaussians that relocation can sample from).
+- **Budget.** With ``max_gaussians`` below the point count, a seeded random
+  subset of the points. MCMC grows to ``max_gaussians``; when that is None it
+  becomes ``mcmc_budget(...)`` (see there).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ..errors import Mlx3dError
+from ..splatting.model import GaussianModel
+
+MCMC_MAX_BUDGET = 1_000_000  # gsplat's and 3DGS-MCMC's default cap_max
+OPAQUE_ALPHA = 0.99  # a photo whose coverage is at least this everywhere has no background to leave out
+
+
+class InitialisationError(Mlx3dError, ValueError):
+    """The dataset cannot seed a model (e.g. no training views, no usable cameras)."""
+
+
+@dataclass
+class InitialState:
+    """What ``initial_state`` returns: the model, the resolved config and notes (one line each)."""
+
+    model: GaussianModel
+    config: object  # TrainerConfig with max_gaussians, init_opacity and init_scale resolved
+    notes: list
+
+
+def mcmc_budget(initial: int, image_pixels: int) -> int:
+    """MCMC's default Gaussian budget: one Gaussian per pixel of a training image,
+    at least twice the initial count (so the model can grow), at most 1,000,000
+    (the reference implementations' default cap).
+
+    A Gaussian much smaller than a pixel in every view is not constrained by
+    the photos, so at this count a model can give each pixel of a view its own
+    Gaussian and more buys little; the bound keeps the default within what a
+    CPU trains in reasonable time at the resolutions it handles.
+    """
+    return int(min(MCMC_MAX_BUDGET, max(2 * int(initial), int(image_pixels))))
+
+
+def look_at_centre(cameras) -> np.ndarray:
+    """(3,) the point nearest (least squares) to every camera's optical axis.
+
+    Cameras that all look the same way (no point is near every axis) fall
+    back towards their centroid through a small ridge term."""
+    centres = np.array([c.center for c in cameras], dtype=np.float64).reshape(-1, 3)
+    forward = np.array([c.R[2] for c in cameras], dtype=np.float64).reshape(-1, 3)  # camera +z in world
+    a = np.zeros((3, 3))
+    b = np.zeros(3)
+    for c, d in zip(centres, forward):
+        p = np.eye(3) - np.outer(d, d)
+        a += p
+        b += p @ c
+    ridge = 1e-3 * len(centres)
+    return np.linalg.solve(a + ridge * np.eye(3), b + ridge * centres.mean(axis=0))
+
+
+def random_cube(cameras, count: int, extent: float | None = None, seed: int = 0):
+    """``count`` points uniformly in the cube the cameras look at, random colours.
+
+    Returns (points (count, 3) float32, colours (count, 3) uint8, centre (3,), half-side)."""
+    centre = look_at_centre(cameras)
+    if extent is None:
+        distance = float(np.median([np.linalg.norm(c.center - centre) for c in cameras]))
+        half_fov = min(min(c.fov_x, c.fov_y) for c in cameras) / 2.0
+        extent = distance * math.tan(min(half_fov, math.radians(60.0)))
+    if not extent > 0:
+        raise InitialisationError(f"the random initial points need a positive extent, got {extent}")
+    rng = np.random.default_rng(seed)
+    points = centre + rng.uniform(-extent, extent, size=(count, 3))
+    colours = rng.integers(0, 256, size=(count, 3), dtype=np.uint8)
+    return points.astype(np.float32), colours, centre, float(extent)
+
+
+def opaque_photos(dataset, sample: int = 8) -> bool:
+    """True when the training photos have no alpha or mask that leaves part of them out
+    (checks up to ``sample`` of them, evenly spread)."""
+    train = list(dataset.train)
+    for i in train[:: max(len(train) // sample, 1)][:sample]:
+        _, weight = dataset.load_image(i)
+        if weight is not None and float(np.min(weight)) < OPAQUE_ALPHA:
+            return False
+    return True
+
+
+def background_sphere(dataset, count: int, radius_factor: float = 10.0, seed: int = 0):
+    """Up to ``count`` points on a sphere of radius ``radius_factor`` × the scene extent around
+    the training cameras' centroid, where a training view sees them, coloured by the mean of the
+    training pixels they project to. Returns (points (M, 3) float32, colours (M, 3) uint8, radius)."""
+    train = list(dataset.train)
+    centres = np.array([dataset.frames[i].camera.center for i in train], dtype=np.float64)
+    centre = centres.mean(axis=0)
+    radius = radius_factor * dataset.scene_extent()
+    rng = np.random.default_rng(seed)
+    images = [(dataset.frames[i].camera, dataset.load_image(i, background="black")[0]) for i in train]
+    points = np.zeros((0, 3))
+    total, seen = np.zeros((0, 3)), np.zeros(0)
+    draw = 4 * count
+    for _ in range(4):  # the views see part of the sphere: draw more until ``count`` are seen
+        directions = rng.normal(size=(draw, 3))
+        batch = centre + radius * directions / np.linalg.norm(directions, axis=1, keepdims=True)
+        colour_sum, hits = _seen_colours(images, batch)
+        points, total, seen = np.concatenate([points, batch]), np.concatenate([total, colour_sum]), np.concatenate([seen, hits])
+        found = int(np.count_nonzero(seen))
+        if found >= count:
+            break
+        draw = int(min(64 * count, (count - found) * len(points) / max(found, 1) * 1.2 + 1))
+    keep = np.flatnonzero(seen > 0)[:count]
+    colours = np.clip(np.round(total[keep] / seen[keep, None] * 255.0), 0, 255).astype(np.uint8)
+    return points[keep].astype(np.float32), colours, float(radius)
+
+
+def _seen_colours(images, points):
+    """For points (M, 3): the sum of the pixel colours they project to over ``images`` [(camera, rgb)]
+    and how many images see them."""
+    total = np.zeros((len(points), 3))
+    seen = np.zeros(len(points))
+    for camera, image in images:
+        uv, depth = (np.asarray(a) for a in camera.project_points(points))
+        ok = (depth > 0) & np.all(np.isfinite(uv), axis=1)
+        ok &= (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
+        cols = uv[ok].astype(np.int64)
+        total[ok] += image[cols[:, 1], cols[:, 0]]
+        seen[ok] += 1
+    return total, seen
+
+
+def image_pixels(dataset) -> int:
+    """The median pixel count of the training images."""
+    sizes = [dataset.frames[i].camera.width * dataset.frames[i].camera.height for i in dataset.train]
+    return int(np.median(sizes))
+
+
+def initial_state(dataset, config, sh_degree: int = 3) -> InitialState:
+    """The model a run on ``dataset`` with ``config`` starts from (see the module docstring).
+
+    dataset: an ``mlx3d.datasets.Dataset`` with training views; config: a
+    ``TrainerConfig``; sh_degree: the model's SH degree (0..3)."""
+    where = str(dataset.root) if dataset.root is not None else "the dataset"
+    train = list(dataset.train)
+    if not train:
+        raise InitialisationError(f"{where}: the dataset has no training views")
+    cameras = [dataset.frames[i].camera for i in train]
+    notes = []
+    seed = config.seed
+    points, colours = dataset.points, dataset.point_colors
+    if points is not None and len(points) >= 2:
+        notes.append(f"initial points: the dataset's {len(points):,}")
+    else:
+        if points is not None and len(points):
+            notes.append(f"the dataset's {len(points)} point is too few to start from")
+        points, colours, centre, half = random_cube(cameras, config.init_random_points, config.init_random_extent, seed)
+        notes.append(
+            f"initial points: {len(points):,} random points (random colours) in a cube of half-side {half:.3g} "
+            f"around ({centre[0]:.3g}, {centre[1]:.3g}, {centre[2]:.3g}); the dataset has none"
+        )
+    cap = config.max_gaussians
+    if cap is not None and len(points) > cap:
+        keep = np.sort(np.random.default_rng(seed).choice(len(points), cap, replace=False))
+        whose = "the dataset's" if dataset.points is not None and len(dataset.points) >= 2 else "the random"
+        notes.append(f"started from {cap:,} of {whose} {len(points):,} points (max Gaussians)")
+        points = points[keep]
+        colours = None if colours is None else colours[keep]
+
+    background = config.init_background_points
+    if background is None:
+        background = max(1000, min(len(points) // 4, 20_000)) if config.method == "mcmc" and opaque_photos(dataset) else 0
+    if background > 0 and (cap is None or len(points) < cap):
+        if cap is not None:
+            background = min(background, cap - len(points))
+        bg_points, bg_colours, radius = background_sphere(dataset, background, config.init_background_radius, seed)
+        if len(bg_points):
+            rgb = np.full((len(points), 3), 128, np.uint8) if colours is None else np.asarray(colours)
+            if rgb.dtype != np.uint8:
+                rgb = np.clip(np.round(rgb * 255.0), 0, 255).astype(np.uint8)
+            points = np.concatenate([points, bg_points])
+            colours = np.concatenate([rgb, bg_colours])
+            notes.append(f"background: {len(bg_points):,} points on a sphere of radius {radius:.3g} (the photos are opaque)")
+
+    model = GaussianModel.from_points(points, colours, sh_degree=sh_degree, initial_opacity=config.init_opacity, seed=seed)
+    if config.init_scale != 1.0:
+        model.params["scales"] = model.params["scales"] + math.log(config.init_scale)
+    notes.append(f"initial opacity {config.init_opacity:g}, scale {config.init_scale:g} x the mean distance to the 3 nearest points")
+    if config.method == "mcmc" and cap is None:
+        cap = mcmc_budget(len(model), image_pixels(dataset))
+        notes.append(
+            f"MCMC budget: {cap:,} Gaussians (one per pixel of a training image, at least twice the initial "
+            f"{len(model):,}, at most {MCMC_MAX_BUDGET:,}; set max_gaussians to change it)"
+        )
+    if config.method != "mcmc":
+        notes.append(
+            f"densification: every {config.densify_every} steps from step {config.densify_from} to {config.densify_until}"
+            + (f", opacity reset every {config.opacity_reset_every}" if config.opacity_reset_every else "")
+            + (f", at most {cap:,} Gaussians" if cap is not None else ", no cap")
+        )
+    else:
+        notes.append(
+            f"MCMC growth: +{config.mcmc_growth:.0%} every {config.densify_every} steps from step {config.densify_from} "
+            f"to {config.densify_until}, relocating Gaussians below opacity {config.mcmc_min_opacity:g}"
+        )
+    return InitialState(model, replace(config, max_gaussians=cap), notes)
