@@ -232,7 +232,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, metavar="OUT.ply")
     p.add_argument("--method", choices=train.METHODS, default="vanilla", help="training method (default vanilla)")
     p.add_argument("--steps", type=_positive_int, default=30000, help="training steps (default 30000)")
-    p.add_argument("--max-gaussians", type=_positive_int, default=None, metavar="M", help="cap on the number of Gaussians (default: none)")
+    p.add_argument("--max-gaussians", type=_positive_int, default=None, metavar="M", help="cap on the number of Gaussians (default: none for vanilla and 2dgs; mcmc grows to one per pixel of a training image, at least twice its start)")
     p.add_argument("--sh-degree", type=int, choices=(0, 1, 2, 3), default=3, help="SH degree of the model (default 3)")
     p.add_argument("--background", choices=train.BACKGROUNDS, default="black", help="background of renders and targets (default black)")
     p.add_argument("--seed", type=int, default=0)

@@ -461,7 +461,7 @@ class MLX3D_OT_train(_ModalWork, bpy.types.Operator):
                               description="Dataset folder (empty: the panel's dataset folder, where Capture Dataset writes)")
     method: EnumProperty(name="Method", items=train.METHOD_ITEMS, default="vanilla")
     steps: IntProperty(name="Steps", default=30000, min=1, description="Training steps (the schedules are laid out over them)")
-    max_gaussians: IntProperty(name="Max Gaussians", default=0, min=0, description="Cap on the number of Gaussians (0: no cap)")
+    max_gaussians: IntProperty(name="Max Gaussians", default=0, min=0, description="Cap on the number of Gaussians (0: the method's default: no cap for Vanilla and 2DGS; MCMC grows to one per pixel of a training image, at least twice its start)")
     sh_degree: IntProperty(name="SH degree", default=3, min=0, max=3, description="Spherical-harmonics degree of the view-dependent colour")
     background: EnumProperty(name="Background", items=train.BACKGROUND_ITEMS, default="black")
     update_every: IntProperty(name="Update every", default=100, min=1, description="Training steps between updates of the splat object")

@@ -39,7 +39,7 @@ class MLX3D_PG_settings(bpy.types.PropertyGroup):
     capture_selected_only: BoolProperty(name="Selected only", default=False, description="Capture the selected meshes (else every visible mesh)")
     train_method: EnumProperty(name="Method", items=train.METHOD_ITEMS, default="vanilla")
     train_steps: IntProperty(name="Steps", default=30000, min=1, description="Training steps")
-    train_max_gaussians: IntProperty(name="Max Gaussians", default=0, min=0, description="Cap on the number of Gaussians (0: no cap)")
+    train_max_gaussians: IntProperty(name="Max Gaussians", default=0, min=0, description="Cap on the number of Gaussians (0: the method's default: no cap for Vanilla and 2DGS; MCMC grows to one per pixel of a training image, at least twice its start)")
     train_sh_degree: IntProperty(name="SH degree", default=3, min=0, max=3, description="Spherical-harmonics degree of the view-dependent colour")
     train_background: EnumProperty(name="Background", items=train.BACKGROUND_ITEMS, default="black")
     train_update_every: IntProperty(name="Update every", default=100, min=1, description="Training steps between updates of the splat object")
