@@ -6,7 +6,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.mlx3d-installed
 
-.PHONY: demo test bench report install extension
+.PHONY: demo test bench bench-scenes report install extension
 
 # `make demo` runs the Blender extension as a user would: it builds the extension
 # zip for this machine and the venv's Python (build/demo-extension/), installs and
@@ -42,6 +42,11 @@ bench: $(STAMP)
 	$(PY) bench/knn.py
 	$(PY) bench/from_points.py
 	$(PY) bench/blender_io.py
+
+# `make bench-scenes` renders the benchmark scene set into bench_data/scenes
+# (git-ignored; a few minutes on 2 cores) for `bench/train.py --suite bench_data/scenes`.
+bench-scenes: $(STAMP)
+	$(PY) bench/scenes.py
 
 # `make report` measures what accuracy costs on this machine (the full run of
 # `mlx3d bench accuracy`, under an hour on 2 cores) and writes the report and its

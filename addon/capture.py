@@ -5,11 +5,13 @@ from an orbit of cameras around their bounding sphere (or from the scene's own
 cameras) and writes, under ``out_dir``::
 
     images/frame_00000.png ...   RGBA 8-bit PNG, sRGB (Standard view transform),
-                                 transparent background (alpha 0)
+                                 transparent background (alpha 0); with
+                                 ``transparent=False`` the world background
+                                 instead (alpha 255)
     transforms.json              nerfstudio format (PINHOLE; camera-to-world, OpenGL axes)
     sparse/0/cameras.txt         COLMAP text model (PINHOLE, world-to-camera,
     sparse/0/images.txt          OpenCV axes) of the same cameras and points
-    sparse/0/points3D.txt
+    sparse/0/points3D.txt        (not with ``colmap=False``)
     points3d.ply                 the initial points: x y z (float) red green blue (uchar)
     mesh.ply                     the captured objects' triangles in world space, the
                                  ground-truth geometry (e.g. to score extracted meshes):
@@ -31,9 +33,12 @@ Conventions (see README "Conventions" and ``mlx3d.cameras``):
   camera axes (x right, y up, looking down -z), Blender world (Z up). COLMAP
   ``images.txt`` holds the inverse with OpenCV axes (x right, y down, z
   forward) as ``QW QX QY QZ TX TY TZ``.
-- Frames ``i % test_every == 0`` are held out: ``test_filenames`` and
-  ``val_filenames`` (nerfstudio asks for the split it evaluates on), the rest
-  are ``train_filenames``.
+- Frames ``i % test_every == 0`` (or the frames ``held_out`` lists) are held
+  out: ``test_filenames`` and ``val_filenames`` (nerfstudio asks for the split
+  it evaluates on), the rest are ``train_filenames``. COLMAP has no splits and
+  ``mlx3d.datasets.load_dataset`` prefers a COLMAP model to ``transforms.json``
+  (holding out every 8th image), so ``colmap=False`` leaves the
+  ``transforms.json`` splits the ones a reader sees.
 - Point (and mesh vertex) colours, sRGB 8-bit like the images: for each triangle's material,
   the colour input (``Base Color`` or ``Color``) of the shader node linked to
   the material output: its value when unlinked, the mesh's colour attribute
@@ -297,13 +302,13 @@ def _orthonormal(camera: Camera) -> Camera:
                                   near=camera.near, far=camera.far, model=camera.model)
 
 
-def _check_folder(out_dir) -> str:
-    """Create ``out_dir`` with its sub-folders and make sure files can be written there, before rendering."""
+def _check_folder(out_dir, subs=(IMAGE_DIR, COLMAP_DIR)) -> str:
+    """Create ``out_dir`` with its sub-folders ``subs`` and make sure files can be written there, before rendering."""
     out = os.path.abspath(os.fspath(out_dir))
     try:
         if os.path.exists(out) and not os.path.isdir(out):
             raise NotADirectoryError(20, "not a folder", out)
-        for sub in (IMAGE_DIR, COLMAP_DIR):
+        for sub in subs:
             os.makedirs(os.path.join(out, sub), exist_ok=True)
             with tempfile.TemporaryFile(dir=os.path.join(out, sub)):
                 pass
@@ -339,7 +344,7 @@ class CaptureSession:
 
     def __init__(self, out_dir, *, objects=None, use_scene_cameras=False, num_views=72, radius=None,
                  elevations_deg=(-10.0, 20.0, 45.0), resolution=(256, 256), samples=32, num_points=20000,
-                 test_every=8, seed=0, scene=None, view_layer=None):
+                 test_every=8, held_out=None, transparent=True, colmap=True, seed=0, scene=None, view_layer=None):
         self.t0 = time.perf_counter()
         self.scene = scene or bpy.context.scene
         if view_layer is None:
@@ -353,6 +358,9 @@ class CaptureSession:
         self.test_every = int(test_every)
         if self.test_every < 0:
             raise CaptureError(f"test_every must be 0 (no held-out frames) or positive, got {test_every!r}")
+        self.held_out = None if held_out is None else sorted({int(i) for i in held_out})
+        self.transparent = bool(transparent)
+        self.colmap = bool(colmap)
         self.seed = int(seed)
         self.use_scene_cameras = bool(use_scene_cameras)
         self.objects = _resolve_objects(objects, self.scene, self.view_layer)
@@ -395,8 +403,10 @@ class CaptureSession:
             self.poses = orbit_poses(self.centre, self.radius, num_views, elevations)
             self.cameras = None
             self.total = len(self.poses)
+        if self.held_out and not 0 <= self.held_out[0] <= self.held_out[-1] < self.total:
+            raise CaptureError(f"held_out frames must be indices 0 to {self.total - 1}, got {self.held_out}")
 
-        self.out_dir = _check_folder(out_dir)
+        self.out_dir = _check_folder(out_dir, (IMAGE_DIR, COLMAP_DIR) if self.colmap else (IMAGE_DIR,))
         self.points, self.colours = surfaces.sample(self.num_points, self.seed)
         self.mesh = surfaces.mesh()
         if self.scene.world is None and not any(o.type == "LIGHT" and not o.hide_render for o in self.scene.objects):
@@ -426,7 +436,7 @@ class CaptureSession:
         self._saved.append((scene, "camera", scene.camera))
         for attr, value in [("engine", "CYCLES"), ("resolution_x", self.width), ("resolution_y", self.height),
                             ("resolution_percentage", 100), ("pixel_aspect_x", 1.0), ("pixel_aspect_y", 1.0),
-                            ("film_transparent", True), ("use_border", False), ("use_compositing", False),
+                            ("film_transparent", self.transparent), ("use_border", False), ("use_compositing", False),
                             ("use_sequencer", False), ("use_single_layer", True), ("use_multiview", False),
                             ("use_motion_blur", False), ("use_persistent_data", True), ("dither_intensity", 0.0)]:
             self._set(render, attr, value)
@@ -532,12 +542,16 @@ class CaptureSession:
         if n == 0:
             return info, [f"capture cancelled before any view was rendered; nothing written to {self.out_dir}"] + self.notes
         names = [f"{IMAGE_DIR}/{name}" for name, _ in self.frames]
-        test = [names[i] for i in range(n) if self.test_every and i % self.test_every == 0]
+        if self.held_out is not None:
+            test = [names[i] for i in self.held_out if i < n]
+        else:
+            test = [names[i] for i in range(n) if self.test_every and i % self.test_every == 0]
         train = [p for p in names if p not in set(test)]
         info.update(train_filenames=train, test_filenames=test, num_points=len(self.points))
         self._write_points()
         write_mesh_ply(os.path.join(self.out_dir, MESH_NAME), self.mesh.vertices, self.mesh.faces, self.mesh.colors)
-        self._write_colmap()
+        if self.colmap:
+            self._write_colmap()
         info.update(self._write_transforms(names, train, test))
         info["seconds"] = time.perf_counter() - self.t0
         stale = self._stale_frames()
@@ -630,7 +644,7 @@ class CaptureSession:
 
 def capture_dataset(out_dir, *, objects=None, use_scene_cameras=False, num_views=72, radius=None,
                     elevations_deg=(-10.0, 20.0, 45.0), resolution=(256, 256), samples=32, num_points=20000,
-                    test_every=8, seed=0, progress=None, scene=None):
+                    test_every=8, held_out=None, transparent=True, colmap=True, seed=0, progress=None, scene=None):
     """Render ``objects`` from many views into a training dataset under ``out_dir``; returns (info, messages).
 
     objects: mesh objects (or names) to frame and sample points on (default:
@@ -649,6 +663,16 @@ def capture_dataset(out_dir, *, objects=None, use_scene_cameras=False, num_views
         (CPU, denoiser off, fixed seed); num_points: points sampled on the
         surfaces (area-weighted, ``seed``); test_every: hold out every n-th
         frame (0: none); progress: ``progress(done, total)`` after each view.
+    held_out: indices of the frames to hold out (in render order: the orbit's,
+        or the scene cameras' sorted by name) instead of every
+        ``test_every``-th; ``()`` holds out none.
+    transparent: render the background transparent (alpha 0, the default);
+        False renders the world background into the images (alpha 255), as
+        a photo of a scene whose surroundings must be reconstructed too.
+    colmap: also write the COLMAP model under ``sparse/0`` (the default).
+        ``mlx3d.datasets.load_dataset`` reads a folder with one as COLMAP,
+        which has no splits; False leaves ``transforms.json`` and its
+        ``held_out`` / ``test_every`` splits as the dataset.
 
     The info dict holds ``out_dir``, ``frames``, ``planned``, ``cancelled``,
     ``width``, ``height``, the shared ``fl_x fl_y cx cy``, ``num_points``,
@@ -660,7 +684,7 @@ def capture_dataset(out_dir, *, objects=None, use_scene_cameras=False, num_views
     session = CaptureSession(
         out_dir, objects=objects, use_scene_cameras=use_scene_cameras, num_views=num_views, radius=radius,
         elevations_deg=elevations_deg, resolution=resolution, samples=samples, num_points=num_points,
-        test_every=test_every, seed=seed, scene=scene,
+        test_every=test_every, held_out=held_out, transparent=transparent, colmap=colmap, seed=seed, scene=scene,
     )
     try:
         session.start()

@@ -456,6 +456,37 @@ def test_scene_cameras_give_per_frame_intrinsics(extension, clean_scene, tmp_pat
     assert len(cameras) == 3 and [im[3] for im in images] == [1, 2, 3]
 
 
+def test_opaque_background_explicit_held_out_frames_and_no_colmap_model(extension, clean_scene, tmp_path):
+    capture = extension.addon.capture
+    scene = build_scene()  # a white world
+    before = snapshot(scene)
+    info, _ = capture.capture_dataset(tmp_path / "ds", num_views=4, elevations_deg=(20,), resolution=(16, 16), samples=1,
+                                      num_points=50, held_out=[3, 1], transparent=False, colmap=False)
+    assert snapshot(scene) == before  # film_transparent (False here) restored as well
+    out = tmp_path / "ds"
+    assert sorted(os.listdir(out)) == ["images", "mesh.ply", "points3d.ply", "transforms.json"]  # no sparse/
+    for name in sorted(os.listdir(out / "images")):
+        rgba = read_png(out / "images" / name)
+        assert rgba.shape == (16, 16, 4) and rgba[..., 3].min() == 255, "opaque: alpha 255 everywhere"
+        assert rgba[0, 0, :3].min() >= 250, "the white world background shows in the corners"
+    meta = json.loads((out / "transforms.json").read_text())
+    paths = [f["file_path"] for f in meta["frames"]]
+    assert meta["test_filenames"] == meta["val_filenames"] == [paths[1], paths[3]] == info["test_filenames"]
+    assert meta["train_filenames"] == [paths[0], paths[2]]
+    if importlib.util.find_spec("PIL") is not None:
+        from mlx3d.datasets import load_dataset
+
+        ds = load_dataset(out)  # nerfstudio, with the explicit splits
+        assert ds.kind == "nerfstudio" and ds.train == [0, 2] and ds.test == [1, 3]
+    empty, _ = capture.capture_dataset(tmp_path / "none", num_views=2, elevations_deg=(20,), resolution=(8, 8), samples=1,
+                                       num_points=10, held_out=())
+    assert empty["test_filenames"] == [] and len(empty["train_filenames"]) == 2
+    assert (tmp_path / "none" / "sparse" / "0" / "images.txt").is_file()  # the COLMAP model by default
+    with pytest.raises(capture.CaptureError, match="held_out frames must be indices 0 to 3"):
+        capture.capture_dataset(tmp_path / "bad", num_views=4, held_out=[4])
+    assert not (tmp_path / "bad").exists()
+
+
 def test_point_colours_from_colour_attributes_and_defaults(extension, clean_scene, tmp_path):
     capture = extension.addon.capture
     scene = bpy.context.scene
