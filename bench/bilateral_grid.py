@@ -1,0 +1,329 @@
+"""Benchmark the per-image bilateral grid's share of a training step.
+
+    python bench/bilateral_grid.py [--gaussians 20000] [--size 256] [--images 64] [--threads 1]
+                                   [--repeat 30] [--markdown PATH]
+
+Builds the synthetic scene of ``mlx3d.report.scene``: an initial model of
+``--gaussians`` Gaussians (``GaussianModel.from_points`` on noisy samples of
+the ground truth, SH degree 3), ``--size``² cameras on its rings and the
+ground truth's renders as targets, and times ``GaussianTrainer.step``
+(vanilla) without the grid, with ``bilateral_grid=True`` as the trainer runs
+it (``--images`` grids, the step's image index cycling over them; the TV of
+all grids in the loss and Adam over the whole stack), and with the per-image
+calls that ``GridAdam``'s documentation describes (the stepped image's grid
+alone: its slice, its TV, ``GridAdam``), run by the same, unchanged
+``GaussianTrainer.step`` through an adapter that presents them under the
+attribute names the step uses. The variants alternate step by step (in
+rotating order), so machine load hits them alike; the table gives the median
+ms per step of each and the grid's share of the step with the grid
+((grid - plain) / grid).
+
+A breakdown of the grid's own work follows, timed the same interleaved way on
+the rendered image: slicing forward, slicing forward + backward (as in the
+step: one image's grid taken from the stacked parameters, gradient to grids
+and image), the TV loss with its gradient, the grids' Adam update, the same
+with the per-image calls, and, for comparison, the MLX-graph formulations
+that ``apply_grid_reference`` and ``total_variation_reference`` keep (MLX's
+own gradients: a scatter-add per gather).
+
+The render threads default to 1 (``MLX3D_NUM_THREADS``), and so do numpy's
+BLAS threads (``OPENBLAS_NUM_THREADS``, ``OMP_NUM_THREADS``, which the grid's
+numpy kernels use), so that the numbers do not depend on how many cores the
+machine lends the run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import statistics
+import sys
+import threading
+import time
+
+from common import emit, peak_rss_mb  # bench/ is on sys.path when run as a script
+
+BACKGROUND = (1.0, 1.0, 1.0)  # the scene's targets are composited on white
+VARIANTS = ("plain", "grid", "grid, per image")
+
+
+def _median_ms(xs) -> float:
+    return statistics.median(xs) * 1000.0
+
+
+def _scene(n: int, size: int, views: int):
+    """The built-in synthetic scene (``mlx3d.report.scene``): an initial model of ``n`` Gaussians
+    (``from_points`` on noisy samples of the ground truth), cameras on its rings, ground-truth targets."""
+    import mlx.core as mx
+
+    from mlx3d.report import scene
+    from mlx3d.splatting import GaussianModel
+
+    truth = scene.ground_truth()
+    points, colours = scene.initial_points(truth, n, 0.03, seed=0)
+    cams = scene.cameras(views, size)
+    targets = [mx.array(scene.render_view(truth, c)) for c in cams]
+    return (lambda: GaussianModel.from_points(points, colours, sh_degree=3)), cams, targets
+
+
+class _PerImageCalls:
+    """The grid calls of the per-image scheme behind the names ``GaussianTrainer.step`` uses.
+
+    ``step`` reads ``bilateral.params`` (the grid to differentiate), calls
+    ``bilateral.apply(image, index, grid, compiled=...)`` and
+    ``bilateral.tv_loss(grid)``, then ``grid_optimizer.update({"grid": grid},
+    {"grid": grad})["grid"]`` and assigns the result to ``bilateral.params``.
+    Here ``params`` is ``GridAdam.current`` for the step's image (set in
+    ``index`` before the step), ``update`` is ``GridAdam.update`` and the
+    assignment is a no-op (``GridAdam`` already wrote the grid).
+    """
+
+    def __init__(self, bilateral, optimizer):
+        self.bilateral, self.optimizer, self.index = bilateral, optimizer, 0
+
+    @property
+    def params(self):
+        return self.optimizer.current(self.bilateral, self.index)
+
+    @params.setter
+    def params(self, _value):
+        pass
+
+    def apply(self, image, index, grid, compiled=True):
+        return self.bilateral.apply(image, index, grid)
+
+    def tv_loss(self, grid):
+        return self.bilateral.tv_loss(grid)
+
+    def update(self, _params, grads):
+        self.optimizer.update(self.bilateral, self.index, grads["grid"])
+        return {"grid": None}
+
+
+class LoadSampler(threading.Thread):
+    """Samples the 1-minute load average every few seconds while the benchmark runs."""
+
+    def __init__(self, every: float = 3.0):
+        super().__init__(daemon=True)
+        self.every, self.samples, self.stop = every, [], threading.Event()
+
+    def sample(self) -> None:
+        try:
+            self.samples.append(os.getloadavg()[0])
+        except (OSError, AttributeError):
+            pass
+
+    def run(self) -> None:
+        self.sample()
+        while not self.stop.wait(self.every):
+            self.sample()
+
+    def line(self, cores: int) -> str:
+        s = self.samples
+        if not s:
+            return "load average not available"
+        text = f"1-minute load average during the run: median {statistics.median(s):.1f}, range {min(s):.1f}-{max(s):.1f} on {cores} cores"
+        if statistics.median(s) > 1.5:  # this benchmark keeps one core busy
+            text += (" (a shared machine: other processes ran beside the benchmark, so times are slower and noisier"
+                     " than on an idle one; the interleaved comparisons hold better than the absolute times)")
+        return text
+
+
+def _interleaved(fns: dict, rounds: int, warmup: int, before=None) -> dict:
+    """Median seconds of each callable, calling them in rotating order each round."""
+    import mlx.core as mx
+
+    names = list(fns)
+    times = {k: [] for k in names}
+    for i in range(warmup + rounds):
+        shift = i % len(names)
+        for name in names[shift:] + names[:shift]:
+            if before is not None:
+                before(name, i)
+            t0 = time.perf_counter()
+            out = fns[name](i)
+            if out is not None:
+                mx.eval(*out)
+            if i >= warmup:
+                times[name].append(time.perf_counter() - t0)
+    return times
+
+
+def run(args) -> dict:
+    import mlx.core as mx
+    import numpy as np
+
+    from mlx3d import native
+    from mlx3d.render import render_gaussians
+    from mlx3d.render.raster_cpu import get_num_threads
+    from mlx3d.training import GaussianTrainer, TrainerConfig
+    from mlx3d.training.adam import Adam
+    from mlx3d.training.bilateral_grid import GridAdam, apply_grid_reference, total_variation_reference
+
+    native.core()  # import (and, for editable installs, rebuild) outside the timing
+    make_model, cams, targets = _scene(args.gaussians, args.size, min(args.images, 8))
+    trainers = {}
+    for variant in VARIANTS:
+        config = TrainerConfig(steps=30_000, bilateral_grid=variant != "plain", background=BACKGROUND, densify_from=10**9,
+                               sh_degree_interval=0)
+        trainers[variant] = GaussianTrainer(make_model(), config, num_images=args.images)
+    per_image = trainers["grid, per image"]
+    calls = _PerImageCalls(per_image.bilateral, GridAdam(per_image.config.bilateral_grid_lr))
+    per_image.bilateral = per_image.grid_optimizer = calls
+
+    # Whole steps, the variants alternating step by step.
+    def step(variant):
+        def go(i):
+            k = i % len(cams)
+            trainers[variant].step(cams[k], targets[k], image_index=i % args.images)
+
+        return go
+
+    def set_index(name, i):
+        calls.index = i % args.images
+
+    times = _interleaved({v: step(v) for v in VARIANTS}, args.repeat, args.warmup, before=set_index)
+
+    # The grid's own work, on the rendered image, with the trainer's grid and optimizer.
+    trainer = trainers["grid"]
+    bg = trainer.bilateral
+    p = trainer.model.params
+    sh = mx.concatenate([p["sh_dc"], p["sh_rest"]], axis=1)
+    image = render_gaussians(cams[0], p["means"], p["quats"], mx.exp(p["scales"]), mx.sigmoid(p["opacities"]), sh=sh, sh_degree=0,
+                             background=BACKGROUND)["image"]
+    mx.eval(image)
+    rng = np.random.default_rng(1)
+    wts = mx.array(rng.standard_normal(image.shape).astype(np.float32))
+    lam = trainer.config.lambda_bilateral_tv
+    # Grids away from the identity (the TV's gradient is 0 there), as after some training.
+    bg.params = bg.params + mx.array(rng.standard_normal(bg.params.shape).astype(np.float32) * 1e-2)
+    mx.eval(bg.params)
+
+    def slice_fwd(i):
+        return [bg.apply(image, i, compiled=False)]
+
+    def slice_fwd_bwd(i):
+        def f(grid, img):
+            return mx.sum(bg.apply(img, i, grid, compiled=False) * wts)
+
+        return list(mx.value_and_grad(f, argnums=(0, 1))(bg.params, image)[1])
+
+    def slice_fwd_bwd_graph(i):
+        def f(grid, img):
+            return mx.sum(apply_grid_reference(grid[i], img) * wts)
+
+        return list(mx.value_and_grad(f, argnums=(0, 1))(bg.params, image)[1])
+
+    def tv(i):
+        return list(mx.value_and_grad(lambda g: lam * bg.tv_loss(g))(bg.params))
+
+    def tv_graph(i):
+        return list(mx.value_and_grad(lambda g: lam * total_variation_reference(g))(bg.params))
+
+    grad_like = mx.array(rng.standard_normal(bg.params.shape).astype(np.float32) * 1e-3)
+    adam = Adam({"grid": trainer.config.bilateral_grid_lr})
+
+    def adam_step(i):
+        return [adam.update({"grid": bg.params}, {"grid": grad_like})["grid"], *adam.m.values(), *adam.v.values()]
+
+    # Per image: a copy of the grids for GridAdam to write into.
+    from mlx3d.training.bilateral_grid import BilateralGrid
+
+    own = BilateralGrid(bg.num_images, bg.grid_shape)
+    own.params = mx.array(np.array(bg.params))
+    grid_adam = GridAdam(trainer.config.bilateral_grid_lr)
+    one_grad = grad_like[0]
+
+    def slice_fwd_bwd_one(i):
+        def f(grid, img):
+            return mx.sum(bg.apply(img, i, grid) * wts)
+
+        return list(mx.value_and_grad(f, argnums=(0, 1))(bg.params[i % bg.num_images], image)[1])
+
+    def tv_one(i):
+        return list(mx.value_and_grad(lambda g: lam * bg.tv_loss(g))(bg.params[i % bg.num_images]))
+
+    def grid_adam_step(i):
+        grid_adam.current(own, i)
+        grid_adam.update(own, i, one_grad)
+        return [own.params]
+
+    parts = {
+        "slice forward": slice_fwd,
+        "slice forward+backward": slice_fwd_bwd,
+        "TV loss + gradient, all grids": tv,
+        "Adam update, all grids": adam_step,
+        "slice forward+backward, this image's grid": slice_fwd_bwd_one,
+        "TV loss + gradient, this image's grid": tv_one,
+        "GridAdam current + update, this image's grid": grid_adam_step,
+        "slice forward+backward, MLX graph (reference)": slice_fwd_bwd_graph,
+        "TV loss + gradient, all grids, MLX graph (reference)": tv_graph,
+    }
+    part_times = _interleaved(parts, args.repeat, args.warmup)
+
+    plain = _median_ms(times["plain"])
+    steps = {v: _median_ms(times[v]) for v in VARIANTS}
+    return {
+        "steps": steps,
+        "share": {v: (steps[v] - plain) / steps[v] for v in VARIANTS if v != "plain"},
+        "parts": {k: _median_ms(v) for k, v in part_times.items()},
+        "threads": get_num_threads(),
+        "peak_rss_mb": peak_rss_mb(),
+    }
+
+
+def _machine_line(threads: int, load: LoadSampler) -> str:
+    from mlx3d.report.accuracy import machine_info
+
+    m = machine_info()
+    memory = f", {m['memory_gb']:.0f} GB memory" if m.get("memory_gb") else ""
+    blas = os.environ.get("OPENBLAS_NUM_THREADS", "default")
+    return (f"{m['cpu']} ({m['machine']}, {m['cores']} cores{memory}), {m['platform']}; Python {m['python']}, "
+            f"MLX {m['mlx']} ({m['mlx_device']}), render backend {m['backend']}, {threads} render thread(s), "
+            f"numpy BLAS threads {blas}; {load.line(m['cores'] or 0)}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--gaussians", type=int, default=20_000)
+    parser.add_argument("--size", type=int, default=256, help="image side in pixels")
+    parser.add_argument("--images", type=int, default=64, help="number of training images (grids)")
+    parser.add_argument("--threads", type=int, default=1, help="MLX3D_NUM_THREADS (and numpy's BLAS threads) (0: all cores)")
+    parser.add_argument("--repeat", type=int, default=30, help="timed steps per variant")
+    parser.add_argument("--warmup", type=int, default=3)
+    parser.add_argument("--markdown", metavar="PATH")
+    args = parser.parse_args()
+    if args.threads > 0:  # before numpy is imported
+        for var in ("MLX3D_NUM_THREADS", "OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS"):
+            os.environ[var] = str(args.threads)
+    load = LoadSampler()
+    load.start()
+    r = run(args)
+    load.stop.set()
+    load.join()
+    steps, share = r["steps"], r["share"]
+    lines = [
+        f"Bilateral grid cost in a vanilla training step: {args.gaussians:,} Gaussians, {args.size}x{args.size}, "
+        f"{args.images} grids of 16x16x8; median of {args.repeat} steps per variant, interleaved",
+        "",
+        _machine_line(r["threads"], load),
+        "",
+        "| step | ms/step | steps/s | grid's share of the step |",
+        "|---|---:|---:|---:|",
+        f"| without grid | {steps['plain']:.1f} | {1000 / steps['plain']:.2f} | |",
+        f"| with grid (trainer as is: TV of all grids, Adam over all grids) | {steps['grid']:.1f} | {1000 / steps['grid']:.2f} "
+        f"| {100 * share['grid']:.1f}% |",
+        f"| with grid, per image (this image's grid, its TV, GridAdam) | {steps['grid, per image']:.1f} "
+        f"| {1000 / steps['grid, per image']:.2f} | {100 * share['grid, per image']:.1f}% |",
+        "",
+        "| grid part (alone, interleaved) | ms |",
+        "|---|---:|",
+    ]
+    lines += [f"| {k} | {v:.2f} |" for k, v in r["parts"].items()]
+    lines += ["", f"Peak RSS {r['peak_rss_mb']:.0f} MB; Python {platform.python_version()}, {sys.platform}."]
+    emit("\n".join(lines) + "\n", args.markdown)
+
+
+if __name__ == "__main__":
+    main()
