@@ -186,10 +186,10 @@ class GaussianTrainer:
             mx.set_cache_limit(int(self.config.cache_limit_gb * 2**30))
 
     def _make_grid(self, num_images: int) -> None:
-        from .bilateral_grid import BilateralGrid
+        from .bilateral_grid import BilateralGrid, GridAdam
 
         self.bilateral = BilateralGrid(num_images, self.config.bilateral_grid_shape)
-        self.grid_optimizer = Adam({"grid": self.config.bilateral_grid_lr})
+        self.grid_optimizer = GridAdam(self.config.bilateral_grid_lr)  # updates only the stepped image's grid
 
     @property
     def max_thickness(self) -> float:
@@ -259,7 +259,7 @@ class GaussianTrainer:
             ran = list(out["stages"])
             image = out["image"]
             if use_grid:
-                image = self.bilateral.apply(image, image_index, grid, compiled=False)
+                image = self.bilateral.apply(image, image_index, grid)
                 out = dict(out, image=image)
                 ran.append("bilateral_grid")
             loss = photometric_loss(image, target, c.lambda_dssim, mask)  # skips SSIM when lambda_dssim is 0
@@ -284,7 +284,7 @@ class GaussianTrainer:
             out["ran"] = ran
             return loss, out
 
-        grid_in = self.bilateral.params if use_grid else mx.zeros((1,))
+        grid_in = self.grid_optimizer.current(self.bilateral, image_index) if use_grid else mx.zeros((1,))
         (loss, out), (grads, grad2d, grad_grid) = mx.value_and_grad(loss_fn, argnums=(0, 1, 2))(params, mx.zeros((n, 2)), grid_in)
         mx.eval(loss, grads, grad2d, grad_grid)
         loss_value = float(loss)
@@ -295,7 +295,7 @@ class GaussianTrainer:
         self.optimizer.lrs = self.learning_rates()
         self.model.params = self.optimizer.update(params, grads)
         if use_grid:
-            self.bilateral.params = self.grid_optimizer.update({"grid": grid_in}, {"grid": grad_grid})["grid"]
+            self.grid_optimizer.update(self.bilateral, image_index, grad_grid)
         if "thickness_clamp" in plan.after_step:
             self.model.apply_2dgs_constraints(self.max_thickness)
             ran.append("thickness_clamp")
@@ -403,6 +403,7 @@ class GaussianTrainer:
             rng_state=np.array(json.dumps(self.rng.bit_generator.state)),
         )
         if self.bilateral is not None:
+            self.grid_optimizer.sync(self.bilateral)
             state["bilateral_grid"] = np.array(self.bilateral.params)
             state.update({f"grid_adam/{k}": v for k, v in self.grid_optimizer.state_dict().items()})
         with atomic_write(path) as f:
