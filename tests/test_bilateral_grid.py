@@ -18,6 +18,7 @@ from mlx3d.training.bilateral_grid import (
     slice_affine,
     total_variation,
     total_variation_reference,
+    warmup_decay,
 )
 
 F64 = mx.float64
@@ -380,13 +381,17 @@ def test_apply_takes_the_image_own_grid(rng):
 # ----------------------------------------------------------------------------
 
 
-def test_grid_adam_equals_adam_over_the_stack(rng):
+@pytest.mark.parametrize("scheduled", [False, True], ids=["constant", "warmup_decay"])
+def test_grid_adam_equals_adam_over_the_stack(rng, scheduled):
     num, shape = 5, (3, 4, 2)
     start = random_grid(rng, (num, *shape), 0.1)
     dense, lazy = BilateralGrid(num, shape), BilateralGrid(num, shape)
     dense.params = A(start)
     lazy.params = A(start)
-    adam, grid_adam = Adam({"grid": 2e-3}), GridAdam(2e-3)
+    # With a schedule, pending steps must sum each step's own rate: a warm-up over 20 steps from
+    # 1% (so that a grid idle through it moves far less than at the full rate), decay to 5%.
+    schedule = warmup_decay(50, 20, 0.01, 0.05) if scheduled else None
+    adam, grid_adam = Adam({"grid": 2e-3}), GridAdam(2e-3, schedule=schedule)
     # Image 4 waits 40 steps, image 0 comes back after 1 and after 30, image 3 is never drawn.
     draws = [0, 0, 1, 2, 1] + [1, 2] * 14 + [0] + [2] * 10 + [4, 1, 0]
     for t, i in enumerate(draws):
@@ -397,6 +402,8 @@ def test_grid_adam_equals_adam_over_the_stack(rng):
             g *= rng.choice([0.0, 1e-13, 1e-16, 1e-20, 1.0], size=g.shape)
         full = np.zeros((num, *shape, 12))
         full[i] = g
+        if scheduled:
+            adam.lrs["grid"] = 2e-3 * float(schedule(np.array([t + 1]))[0])
         dense.params = adam.update({"grid": dense.params}, {"grid": A(full)})["grid"]
         grid_adam.update(lazy, i, A(g))
         np.testing.assert_allclose(np.array(lazy.params[i]), np.array(dense.params[i]), atol=2e-6, rtol=0)
@@ -407,6 +414,15 @@ def test_grid_adam_equals_adam_over_the_stack(rng):
     np.testing.assert_allclose(grid_adam.m, np.array(adam.m["grid"]), rtol=1e-5, atol=1e-12)
     np.testing.assert_allclose(grid_adam.v, np.array(adam.v["grid"]), rtol=1e-5, atol=1e-20)
     assert grid_adam.step_count == adam.step_count == len(draws)
+
+
+def test_warmup_decay_matches_its_definition():
+    f = warmup_decay(3000, 1000, start=0.01, final=0.01)
+    t = np.array([1, 501, 1001, 3001])
+    np.testing.assert_allclose(f(t), [0.01, 0.505 * 0.01 ** (500 / 3000), 0.01 ** (1000 / 3000), 0.01], rtol=1e-12)
+    np.testing.assert_allclose(warmup_decay(10, 0, final=1.0)(np.arange(1, 11)), 1.0)
+    with pytest.raises(ValueError, match="warmup_decay"):
+        warmup_decay(100, 10, start=0.0)
 
 
 def test_grid_adam_first_step_is_adam_bit_for_bit(rng):

@@ -64,7 +64,7 @@ import functools
 import itertools
 import os
 from collections import OrderedDict
-from typing import Dict, Optional, Sequence, Tuple
+from typing import Callable, Dict, Optional, Sequence, Tuple
 
 import mlx.core as mx
 import numpy as np
@@ -677,6 +677,24 @@ class BilateralGrid:
 # ----------------------------------------------------------------------------
 
 
+def warmup_decay(total_steps: int, warmup_steps: int = 1000, start: float = 0.01, final: float = 0.01):
+    """Learning-rate multiplier for step ``t`` (1-based): a linear warm-up from ``start`` to 1 over
+    ``warmup_steps``, times an exponential decay to ``final`` at ``total_steps`` (gsplat's
+    schedule for the grids).  The warm-up keeps the grids from taking on the colour of a scene
+    that has no geometry yet; the decay settles them once it has.
+    """
+    if total_steps < 1 or warmup_steps < 0 or not (0.0 < start <= 1.0) or not (0.0 < final <= 1.0):
+        raise ValueError(f"warmup_decay: need total_steps >= 1, warmup_steps >= 0 and start, final in (0, 1], "
+                         f"got {total_steps}, {warmup_steps}, {start}, {final}")
+
+    def factor(t: np.ndarray) -> np.ndarray:
+        s = np.asarray(t, np.float64) - 1.0  # steps taken before this one
+        warm = 1.0 if warmup_steps == 0 else start + (1.0 - start) * np.minimum(s / warmup_steps, 1.0)
+        return warm * final ** (s / total_steps)
+
+    return factor
+
+
 class GridAdam:
     """Adam over a :class:`BilateralGrid`'s stacked grids that touches one grid per step.
 
@@ -703,6 +721,9 @@ class GridAdam:
     sees a different sequence: the same regulariser in expectation, not the
     same trajectory.
 
+    ``schedule`` maps step numbers to a learning-rate multiplier (e.g.
+    :func:`warmup_decay`); the closed form sums the scheduled rates.
+
     Use: ``grid = opt.current(bg, i)`` before building the loss (the grid with
     its pending steps applied), ``opt.update(bg, i, grad)`` after, and
     ``opt.sync(bg)`` before reading ``bg.params`` as a whole (checkpoints,
@@ -711,8 +732,10 @@ class GridAdam:
     ``m/grid``, ``v/grid`` state as well.
     """
 
-    def __init__(self, learning_rate: float, betas=(0.9, 0.999), eps: float = 1e-15):
+    def __init__(self, learning_rate: float, betas=(0.9, 0.999), eps: float = 1e-15,
+                 schedule: Optional[Callable[[np.ndarray], np.ndarray]] = None):
         self.lr = float(learning_rate)
+        self.schedule = schedule  # step t (1-based, int array) -> lr multiplier; None: constant
         self.b1, self.b2 = (float(b) for b in betas)
         self.eps = float(eps)
         self.step_count = 0
@@ -756,7 +779,7 @@ class GridAdam:
         t = start + j
         # step j: m_j = b1^j m, v_j = b2^j v -> lr * (m_j / c1) / (sqrt(v_j / c2) + eps)
         #       = m * alpha_j / (beta_j * sqrt(v) + eps)
-        alpha = self.lr * self.b1**j / (1.0 - self.b1**t)
+        alpha = self._lrs(t) * self.b1**j / (1.0 - self.b1**t)
         beta = self.b2 ** (j / 2) / np.sqrt(1.0 - self.b2**t)
         u = np.sqrt(self.v[indices].astype(np.float64))
         out = np.zeros_like(m)
@@ -771,6 +794,12 @@ class GridAdam:
             us = u[small][:, None]
             out[small] = m[small] * np.sum(alpha / (beta * us + self.eps), axis=1)
         return out
+
+    def _lrs(self, t: np.ndarray) -> np.ndarray:
+        """Learning rates of steps ``t`` (1-based)."""
+        if self.schedule is None:
+            return np.full(np.shape(t), self.lr)
+        return self.lr * np.asarray(self.schedule(np.asarray(t, np.int64)), np.float64)
 
     def _catch_up(self, bg: BilateralGrid, indices: np.ndarray) -> None:
         """Apply the pending zero-gradient steps of grids ``indices`` (distinct)."""
@@ -812,7 +841,8 @@ class GridAdam:
         v = self.b2 * self.v[i] + (1 - self.b2) * g * g
         self.m[i], self.v[i] = m, v
         p = np.array(bg.params[i])
-        p = p - self.lr * (m / c1) / (np.sqrt(v / c2) + np.float32(self.eps))
+        lr = self.lr if self.schedule is None else float(self._lrs(np.array([self.step_count]))[0])
+        p = p - lr * (m / c1) / (np.sqrt(v / c2) + np.float32(self.eps))
         self.last[i] = self.step_count
         bg.params = _set_grids(bg.params, np.array([i]), p[None])
 

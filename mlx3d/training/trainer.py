@@ -91,6 +91,7 @@ class TrainerConfig:
     bilateral_grid: bool = False
     bilateral_grid_shape: tuple = (16, 16, 8)
     bilateral_grid_lr: float = 2e-3
+    bilateral_grid_warmup: int = 1000  # lr rises linearly from 1% over these steps, then decays to 1% at `steps`
     lambda_bilateral_tv: float = 10.0
     # surfels and geometry regularisers (see mlx3d.training.geometry); None: the method's default
     two_d_thickness: float = 1e-3  # '2dgs': largest third scale, as a fraction of the scene extent
@@ -186,10 +187,11 @@ class GaussianTrainer:
             mx.set_cache_limit(int(self.config.cache_limit_gb * 2**30))
 
     def _make_grid(self, num_images: int) -> None:
-        from .bilateral_grid import BilateralGrid, GridAdam
+        from .bilateral_grid import BilateralGrid, GridAdam, warmup_decay
 
         self.bilateral = BilateralGrid(num_images, self.config.bilateral_grid_shape)
-        self.grid_optimizer = GridAdam(self.config.bilateral_grid_lr)  # updates only the stepped image's grid
+        schedule = warmup_decay(max(self.config.steps, 1), self.config.bilateral_grid_warmup)
+        self.grid_optimizer = GridAdam(self.config.bilateral_grid_lr, schedule=schedule)  # updates only the stepped image's grid
 
     @property
     def max_thickness(self) -> float:
