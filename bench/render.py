@@ -44,7 +44,7 @@ def _make_scene(name):
 
     n, width, height, (s_lo, s_hi) = SCENES[name]
     rng = np.random.default_rng(0)
-    cam = Camera.look_at(eye=(0.0, -3.0, 0.0), at=(0.0, 0.0, 0.0), up=(0, 0, 1), width=width, height=height, fov=60.0)
+    cam = Camera.look_at(eye=(0.0, -3.0, 0.0), at=(0.0, 0.0, 0.0), up=(0, 0, 1), width=width, height=height, hfov=60.0)
     arrays = {
         "means": rng.uniform(-1.0, 1.0, (n, 3)),
         "quats": rng.normal(size=(n, 4)),

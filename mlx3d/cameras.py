@@ -29,6 +29,20 @@ Point methods accept numpy arrays (computed in float64) or MLX arrays
 (computed in their own floating dtype, differentiable) and return the same
 array type. One implementation serves both: the math is plain arithmetic and
 only ``stack``/``where``/``sqrt``-like calls go through ``_xp``.
+
+The API of the original mlx3D library's ``mlx3d.cameras`` is accepted as well,
+with its meanings: ``Camera(R, t, fx, fy, cx, cy, width, height, znear, zfar,
+orthographic, distortion, fisheye)`` (positional or keyword), ``znear``/``zfar``,
+``orthographic``/``distortion``/``fisheye``; ``Camera.look_at`` with a y-up
+default and a VERTICAL field of view in degrees (default 60) and a 512x512
+default size; ``Camera.from_fov``, ``Camera.orthographic_camera``,
+``camera_center``, ``world_to_camera_matrix``, ``camera_to_world``,
+``unproject_points``, ``generate_rays``; and the module functions ``look_at``,
+``look_at_view_transform``, ``fov_to_focal`` and ``focal_to_fov``. Our own
+names (``viewmat``, ``near``/``far``, ``model``/``dist``, ``hfov``/``focal``
+in ``look_at``) are additions. ``R``, ``t``, ``K`` and ``center`` are float64
+numpy arrays; the names that only the original has return float32 MLX arrays
+as it does.
 """
 
 from __future__ import annotations
@@ -176,20 +190,239 @@ def _check_pose(matrix, name: str) -> np.ndarray:
 
 _GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])  # flips camera y and z; its own inverse
 
+# Constructor argument orders: ours, and the original mlx3D library's (chosen when
+# the first positional argument is an array, i.e. its rotation R).
+_OUR_ORDER = ("width", "height", "fx", "fy", "cx", "cy", "viewmat", "near", "far", "model", "dist")
+_ORIGINAL_ORDER = ("R", "t", "fx", "fy", "cx", "cy", "width", "height", "znear", "zfar", "orthographic",
+                   "distortion", "fisheye")
+_ARG_NAMES = frozenset(_OUR_ORDER) | frozenset(_ORIGINAL_ORDER)
+_REQUIRED = ("width", "height", "fx", "fy", "cx", "cy")
+_DEFAULT_NEAR = 0.01
+_DEFAULT_FAR = 1e10
+_DEFAULT_FOV_DEG = 60.0  # the original's look_at default: vertical, degrees
 
-@dataclass(frozen=True, eq=False)
+
+def _is_array_like(a) -> bool:
+    """True for arrays and (nested) sequences, False for scalars: tells R from width."""
+    if _is_mx(a):
+        return a.ndim >= 1
+    if isinstance(a, (str, bytes)):
+        return False
+    if isinstance(a, (list, tuple)):
+        return True
+    try:
+        return np.ndim(a) >= 1
+    except (TypeError, ValueError):
+        return False
+
+
+def _mat3(m, name: str) -> np.ndarray:
+    """A (3, 3) finite float64 numpy copy of ``m`` (sequence, numpy or MLX array)."""
+    if _is_mx(m):
+        m = np.array(m)
+    try:
+        out = np.array(m, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a 3x3 numeric matrix, got {type(m).__name__}") from None
+    if out.shape != (3, 3):
+        raise ValueError(f"{name} must have shape (3, 3), got {out.shape}")
+    if not np.all(np.isfinite(out)):
+        raise ValueError(f"{name} must be finite, got {out.tolist()}")
+    return out
+
+
+def _translation(t) -> np.ndarray:
+    """A (3,) finite float64 vector from a (3,) or (3, 1) sequence, numpy or MLX array."""
+    if _is_mx(t):
+        t = np.array(t)
+    try:
+        out = np.array(t, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"t must be a 3-vector, got {t!r}") from None
+    if out.size != 3 or out.ndim > 2:
+        raise ValueError(f"t must be a 3-vector, got shape {out.shape}")
+    out = out.reshape(3)
+    if not np.all(np.isfinite(out)):
+        raise ValueError(f"t must be finite, got {out.tolist()}")
+    return out
+
+
+def _resolve_pose(args: dict) -> np.ndarray:
+    """viewmat from ``viewmat`` and/or the original's ``R`` and ``t``.
+
+    ``R`` and ``t`` replace the rotation and translation of ``viewmat`` (identity
+    when absent), so ``dataclasses.replace(cam, R=..., t=...)`` works.
+    """
+    viewmat = args.get("viewmat")
+    if "R" not in args and "t" not in args:
+        return np.eye(4) if viewmat is None else viewmat
+    m = np.eye(4) if viewmat is None else _check_pose(viewmat, "viewmat")
+    if "R" in args:
+        r = _mat3(args["R"], "R")
+        rm = np.eye(4)
+        rm[:3, :3] = r
+        _check_pose(rm, "R")  # rigid-rotation checks, reported against R
+        m[:3, :3] = r
+    if "t" in args:
+        m[:3, 3] = _translation(args["t"])
+    return m
+
+
+def _coefficients(d, name: str):
+    """A tuple of floats from a sequence / array of coefficients (None and () give None)."""
+    if d is None:
+        return None
+    try:
+        out = tuple(float(x) for x in np.asarray(np.array(d) if _is_mx(d) else d, dtype=np.float64).ravel())
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a sequence of numbers, got {d!r}") from None
+    return out or None
+
+
+def _resolve_lens(args: dict):
+    """(model, dist) from ours (``model``, ``dist``) and/or the original's lens arguments.
+
+    The original's ``orthographic``, ``distortion`` and ``fisheye`` take precedence
+    over ``model``/``dist`` where both are given (as ``dataclasses.replace`` does).
+    Brown-Conrady ``distortion`` may have 4 coefficients (k3 = 0) or 5; fisheye 4;
+    ``fisheye=True`` without coefficients is the equidistant model.
+    """
+    model = args.get("model", "pinhole")
+    dist = args.get("dist", ())
+    if not any(k in args for k in ("orthographic", "distortion", "fisheye")):
+        return model, dist
+    ortho = args.get("orthographic")
+    fisheye = args.get("fisheye")
+    if "distortion" in args:
+        coeffs = _coefficients(args["distortion"], "distortion")
+    else:
+        coeffs = _coefficients(dist, "dist") if model in ("opencv", "fisheye") else None
+    if ortho is None:
+        ortho = model == "orthographic"
+    if ortho:
+        if fisheye or ("distortion" in args and coeffs is not None and any(coeffs)):
+            raise ValueError("lens distortion is not supported for an orthographic camera")
+        return "orthographic", ()
+    if fisheye is None:
+        fisheye = model == "fisheye"
+    if fisheye:
+        return "fisheye", (0.0, 0.0, 0.0, 0.0) if coeffs is None else coeffs
+    if coeffs is None:
+        return "pinhole", ()
+    if len(coeffs) == 4:
+        coeffs = coeffs + (0.0,)
+    return "opencv", coeffs
+
+
+def _focal_from_angle(angle, pixels: int, degrees, name: str) -> float:
+    """Focal length in pixels spanning ``pixels`` with field of view ``angle``."""
+    a = _finite_float(angle, name)
+    rad = math.radians(a) if degrees else a
+    if not 0.0 < rad < math.pi:
+        unit = "degrees" if degrees else "radians"
+        limit = "180" if degrees else "pi"
+        raise ValueError(f"{name} must be in (0, {limit}) {unit}, got {angle!r}")
+    return pixels / (2.0 * math.tan(rad / 2.0))
+
+
+def _look_at_pose(eye, at, up):
+    """World-to-camera (R, t), float64, for a camera at ``eye`` looking at ``at`` with ``up`` up in the image."""
+    eye, at, up = _vec3(eye, "eye"), _vec3(at, "at"), _vec3(up, "up")
+    for name, v in (("eye", eye), ("at", at), ("up", up)):
+        if not np.all(np.isfinite(v)):
+            raise ValueError(f"{name} must be finite, got {v.tolist()}")
+    forward = at - eye
+    dist_ = float(np.linalg.norm(forward))
+    if dist_ <= 1e-12 * max(1.0, float(np.linalg.norm(eye))):
+        raise ValueError(f"eye and at must differ, got eye={eye.tolist()}, at={at.tolist()}")
+    z = forward / dist_
+    up_norm = float(np.linalg.norm(up))
+    if up_norm == 0.0:
+        raise ValueError(f"up must be non-zero, got {up.tolist()}")
+    x = np.cross(z, up / up_norm)
+    xn = float(np.linalg.norm(x))
+    if xn < 1e-9:
+        raise ValueError(f"up must not be parallel to the view direction at - eye, got up={up.tolist()}")
+    x /= xn
+    y = np.cross(z, x)  # image down
+    r = np.stack([x, y, z])
+    return r, -r @ eye
+
+
+def fov_to_focal(fov: float, pixels: int) -> float:
+    """Focal length in pixels for a field of view ``fov`` in RADIANS across ``pixels``."""
+    return pixels / (2.0 * math.tan(fov / 2.0))
+
+
+def focal_to_fov(focal: float, pixels: int) -> float:
+    """Field of view in RADIANS across ``pixels`` for a focal length ``focal`` in pixels."""
+    return 2.0 * math.atan(pixels / (2.0 * focal))
+
+
+def look_at(eye, at=(0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0)):
+    """World-to-camera ``(R (3, 3), t (3,))`` as float32 MLX arrays, ``x_cam = R x_world + t``.
+
+    OpenCV camera axes; ``up`` points up in the image (it need not be
+    perpendicular to the view direction, only not parallel to it).
+    ``Camera(R=R, t=t, ...)`` takes the result.
+    """
+    import mlx.core as mx
+
+    r, t = _look_at_pose(eye, at, up)
+    return mx.array(r, dtype=mx.float32), mx.array(t, dtype=mx.float32)
+
+
+def look_at_view_transform(dist=1.0, elev=0.0, azim=0.0, at=(0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), degrees=True):
+    """``look_at`` for a camera on a sphere of radius ``dist`` around ``at``, looking at it.
+
+    ``elev`` is the angle above the xz-plane, ``azim`` the angle about +y measured
+    from +z (degrees unless ``degrees=False``): the camera sits at
+    ``at + dist (cos(elev) sin(azim), sin(elev), cos(elev) cos(azim))``.
+    Returns float32 MLX ``(R, t)``.
+    """
+    elev, azim = float(elev), float(azim)
+    if degrees:
+        elev, azim = math.radians(elev), math.radians(azim)
+    d = float(dist)
+    at = _vec3(at, "at")
+    eye = at + d * np.array([math.cos(elev) * math.sin(azim), math.sin(elev), math.cos(elev) * math.cos(azim)])
+    return look_at(eye, at, up)
+
+
+@dataclass(frozen=True, eq=False, init=False)
 class Camera:
     """A camera: image size, intrinsics, world-to-camera pose and lens model.
+
+    Two constructor forms, positional or keyword:
+
+    ``Camera(width, height, fx, fy, cx, cy, viewmat=I, near=0.01, far=1e10, model='pinhole', dist=())``
 
     width, height: image size in pixels.
     fx, fy: focal lengths in pixels (orthographic: pixels per world unit).
     cx, cy: principal point in continuous pixel coordinates (centre = W/2, H/2).
-    viewmat: (4, 4) world-to-camera, OpenCV axes; kept as a read-only float64
-        numpy copy (``viewmat_mx`` is the float32 MLX version).
+    viewmat: (4, 4) or (3, 4) world-to-camera, OpenCV axes; kept as a read-only
+        float64 numpy copy (``viewmat_mx`` is the float32 MLX version).
     near, far: clipping depths (world units along camera z), ``near < far``.
     model: ``'pinhole'``, ``'opencv'``, ``'fisheye'`` or ``'orthographic'``.
     dist: distortion coefficients: ``(k1, k2, p1, p2, k3)`` for ``'opencv'``,
         ``(k1, k2, k3, k4)`` for ``'fisheye'``, ``()`` otherwise.
+
+    ``Camera(R, t, fx, fy, cx, cy, width, height, znear=0.01, zfar=1e10, orthographic=False,
+    distortion=None, fisheye=False)``: the original mlx3D library's form (its
+    positional order applies when the first positional argument is an array):
+
+    R, t: world-to-camera rotation (3, 3) and translation (3,), ``x_cam = R x_world + t``
+        (numpy, MLX or sequences).
+    znear, zfar: the same as near, far. (The original's ``zfar`` default is 100,
+        which its splatting renderer never reads; here far culls, so the default
+        stays 1e10.)
+    orthographic: True for ``model='orthographic'``.
+    distortion: Brown-Conrady ``(k1, k2, p1, p2[, k3])`` (``model='opencv'``), or with
+        ``fisheye=True`` OpenCV fisheye ``(k1, k2, k3, k4)`` (``model='fisheye'``;
+        equidistant when None).
+
+    The names of both forms may be mixed; the original's names win where both
+    describe the same thing, so ``dataclasses.replace(cam, R=..., znear=...)`` works.
 
     Frozen: use ``dataclasses.replace`` (which re-validates) for variants.
     """
@@ -205,6 +438,34 @@ class Camera:
     far: float = 1e10
     model: str = "pinhole"
     dist: tuple = ()
+
+    def __init__(self, *args, **kwargs):
+        order = _ORIGINAL_ORDER if args and _is_array_like(args[0]) else _OUR_ORDER
+        if len(args) > len(order):
+            raise TypeError(f"Camera() takes at most {len(order)} positional arguments ({len(args)} given)")
+        for name, value in zip(order, args):
+            if name in kwargs:
+                raise TypeError(f"Camera() got multiple values for argument {name!r}")
+            kwargs[name] = value
+        unknown = sorted(set(kwargs) - _ARG_NAMES)
+        if unknown:
+            raise TypeError(f"Camera() got an unexpected keyword argument {unknown[0]!r}")
+        missing = [name for name in _REQUIRED if name not in kwargs]
+        if missing:
+            raise TypeError(f"Camera() missing required argument(s): {', '.join(missing)}")
+        for name in _REQUIRED:
+            object.__setattr__(self, name, kwargs[name])
+        model, dist = _resolve_lens(kwargs)
+        values = {
+            "viewmat": _resolve_pose(kwargs),
+            "near": kwargs.get("znear", kwargs.get("near", _DEFAULT_NEAR)),
+            "far": kwargs.get("zfar", kwargs.get("far", _DEFAULT_FAR)),
+            "model": model,
+            "dist": dist,
+        }
+        for name, value in values.items():
+            object.__setattr__(self, name, value)
+        self.__post_init__()
 
     def __post_init__(self):
         def put(name, value):
@@ -285,6 +546,43 @@ class Camera:
         return self.viewmat[:3, 3].copy()
 
     @property
+    def znear(self) -> float:
+        """``near`` (the original mlx3D library's name)."""
+        return self.near
+
+    @property
+    def zfar(self) -> float:
+        """``far`` (the original mlx3D library's name)."""
+        return self.far
+
+    @property
+    def orthographic(self) -> bool:
+        """True for ``model='orthographic'``."""
+        return self.model == "orthographic"
+
+    @property
+    def fisheye(self) -> bool:
+        """True for ``model='fisheye'``."""
+        return self.model == "fisheye"
+
+    @property
+    def distortion(self) -> tuple | None:
+        """The lens coefficients (``dist``) of ``'opencv'`` / ``'fisheye'``, None otherwise."""
+        return self.dist if self.model in ("opencv", "fisheye") else None
+
+    @property
+    def camera_center(self):
+        """(3,) camera centre in world coordinates, a float32 MLX array (``center`` is numpy float64)."""
+        import mlx.core as mx
+
+        return mx.array(self.center, dtype=mx.float32)
+
+    @property
+    def world_to_camera_matrix(self):
+        """(4, 4) world-to-camera matrix, a float32 MLX array (the same as ``viewmat_mx``)."""
+        return self.viewmat_mx
+
+    @property
     def viewmat_mx(self):
         """``viewmat`` as a (4, 4) float32 MLX array."""
         import mlx.core as mx
@@ -343,56 +641,91 @@ class Camera:
     # -- constructors
 
     @classmethod
-    def look_at(cls, eye, at, up=(0.0, 0.0, 1.0), *, width, height, fov=None, focal=None, **kw) -> "Camera":
+    def look_at(cls, eye, at=(0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), fov=None, width=512, height=512, degrees=True,
+                *, hfov=None, focal=None, **kw) -> "Camera":
         """A camera at ``eye`` looking at ``at``, with ``up`` pointing up in the image.
 
-        eye, at, up: (3,) world coordinates / direction (``up`` need not be
-            perpendicular to the view direction, only not parallel to it).
-        width, height: image size in pixels.
-        fov: HORIZONTAL field of view in DEGREES, ``fx = (W/2) / tan(fov/2)``;
-            or focal: focal length in pixels (orthographic: pixels per world
-            unit). Exactly one of the two; ``fy = fx``.
-        kw: other ``Camera`` fields (``near``, ``far``, ``model``, ``dist``).
+        The original mlx3D library's signature and meanings, plus ``hfov`` and ``focal``.
+
+        eye, at, up: (3,) world coordinates / direction. ``up`` defaults to +y (a
+            y-up world); it need not be perpendicular to the view direction, only
+            not parallel to it. The camera's y axis (image down) is the part of
+            ``-up`` perpendicular to the view direction; its x axis (image right)
+            is ``forward x up``.
+        fov: VERTICAL field of view, in degrees (radians with ``degrees=False``),
+            across ``height``: ``fx = fy = (H/2) / tan(fov/2)``. Default 60 degrees.
+        width, height: image size in pixels (default 512 x 512).
+        hfov: instead of ``fov``, the HORIZONTAL field of view across ``width``
+            (same unit as ``fov``): ``fx = fy = (W/2) / tan(hfov/2)``.
+        focal: instead of ``fov``, the focal length in pixels.
+            At most one of ``fov``, ``hfov``, ``focal``. For an orthographic camera
+            the resulting number is used as pixels per world unit, as in the
+            original (``Camera.orthographic_camera`` takes a view size instead).
+        kw: other ``Camera`` arguments of either form (``near``/``znear``,
+            ``far``/``zfar``, ``model``/``orthographic``, ``dist``/``distortion``/``fisheye``),
+            not the pose.
         The principal point is the image centre ``(W/2, H/2)``.
         """
-        eye, at, up = _vec3(eye, "eye"), _vec3(at, "at"), _vec3(up, "up")
-        for name, v in (("eye", eye), ("at", at), ("up", up)):
-            if not np.all(np.isfinite(v)):
-                raise ValueError(f"{name} must be finite, got {v.tolist()}")
-        forward = at - eye
-        dist_ = float(np.linalg.norm(forward))
-        if dist_ <= 1e-12 * max(1.0, float(np.linalg.norm(eye))):
-            raise ValueError(f"eye and at must differ, got eye={eye.tolist()}, at={at.tolist()}")
-        z = forward / dist_
-        up_norm = float(np.linalg.norm(up))
-        if up_norm == 0.0:
-            raise ValueError(f"up must be non-zero, got {up.tolist()}")
-        x = np.cross(z, up / up_norm)
-        xn = float(np.linalg.norm(x))
-        if xn < 1e-9:
-            raise ValueError(f"up must not be parallel to the view direction at - eye, got up={up.tolist()}")
-        x /= xn
-        y = np.cross(z, x)  # image down
-        viewmat = np.eye(4)
-        viewmat[:3, :3] = np.stack([x, y, z])
-        viewmat[:3, 3] = -viewmat[:3, :3] @ eye
-
+        r, t = _look_at_pose(eye, at, up)
+        for name in ("viewmat", "R", "t"):
+            if name in kw:
+                raise TypeError(f"look_at sets the pose from eye, at and up; {name!r} cannot be given")
         width = _positive_int(width, "width")
         height = _positive_int(height, "height")
-        if (fov is None) == (focal is None):
-            raise ValueError(f"give exactly one of fov (degrees) and focal (pixels), got fov={fov!r}, focal={focal!r}")
-        if fov is not None:
-            fov = _finite_float(fov, "fov")
-            if kw.get("model") == "orthographic":
-                raise ValueError("fov is undefined for model 'orthographic'; give focal (pixels per world unit)")
-            if not 0.0 < fov < 180.0:
-                raise ValueError(f"fov must be in (0, 180) degrees, got {fov!r}")
-            focal = (width / 2.0) / math.tan(math.radians(fov) / 2.0)
-        else:
-            focal = _finite_float(focal, "focal")
-            if focal <= 0:
+        given = [name for name, v in (("fov", fov), ("hfov", hfov), ("focal", focal)) if v is not None]
+        if len(given) > 1:
+            raise ValueError(f"give at most one of fov (vertical), hfov (horizontal) and focal (pixels), "
+                             f"got {', '.join(given)}")
+        if focal is not None:
+            f = _finite_float(focal, "focal")
+            if f <= 0:
                 raise ValueError(f"focal must be positive, got {focal!r}")
-        return cls(width, height, focal, focal, width / 2.0, height / 2.0, viewmat, **kw)
+        elif hfov is not None:
+            f = _focal_from_angle(hfov, width, degrees, "hfov")
+        else:
+            if fov is None:
+                fov = _DEFAULT_FOV_DEG if degrees else math.radians(_DEFAULT_FOV_DEG)
+            f = _focal_from_angle(fov, height, degrees, "fov")
+        viewmat = np.eye(4)
+        viewmat[:3, :3] = r
+        viewmat[:3, 3] = t
+        return cls(width=width, height=height, fx=f, fy=f, cx=width / 2.0, cy=height / 2.0, viewmat=viewmat, **kw)
+
+    @classmethod
+    def from_fov(cls, fov, width, height, R=None, t=None, degrees=True, **kw) -> "Camera":
+        """A centred camera from a VERTICAL field of view (degrees unless ``degrees=False``).
+
+        ``fx = fy = (H/2) / tan(fov/2)``, ``cx, cy = W/2, H/2``. R, t: world-to-camera
+        pose (identity when omitted). kw: other ``Camera`` arguments of either form.
+        """
+        width = _positive_int(width, "width")
+        height = _positive_int(height, "height")
+        f = _focal_from_angle(fov, height, degrees, "fov")
+        if R is not None:
+            kw["R"] = R
+        if t is not None:
+            kw["t"] = t
+        return cls(width=width, height=height, fx=f, fy=f, cx=width / 2.0, cy=height / 2.0, **kw)
+
+    @classmethod
+    def orthographic_camera(cls, scale, width, height, R=None, t=None, **kw) -> "Camera":
+        """A centred orthographic camera seeing ``[-scale, scale]`` world units vertically.
+
+        ``fx = fy = (H/2) / scale`` pixels per world unit (the width follows from
+        the aspect ratio). R, t: world-to-camera pose (identity when omitted).
+        kw: other ``Camera`` arguments of either form.
+        """
+        width = _positive_int(width, "width")
+        height = _positive_int(height, "height")
+        s = _finite_float(scale, "scale")
+        if s <= 0:
+            raise ValueError(f"scale must be positive, got {scale!r}")
+        if R is not None:
+            kw["R"] = R
+        if t is not None:
+            kw["t"] = t
+        return cls(width=width, height=height, fx=(height / 2.0) / s, fy=(height / 2.0) / s, cx=width / 2.0,
+                   cy=height / 2.0, orthographic=True, **kw)
 
     @classmethod
     def from_opengl_c2w(cls, c2w, width, height, fx, fy=None, cx=None, cy=None, **kw) -> "Camera":
@@ -446,12 +779,17 @@ class Camera:
         p = _as_float(points, "points", 3)
         return _apply(self.viewmat[:3], p[..., 0], p[..., 1], p[..., 2])
 
-    def camera_to_pixels(self, points_cam):
+    def camera_to_world(self, points_cam):
+        """World points (..., 3) from camera-space points (..., 3); same array type."""
+        p = _as_float(points_cam, "points_cam", 3)
+        return _apply(self.camtoworld[:3], p[..., 0], p[..., 1], p[..., 2])
+
+    def camera_to_pixels(self, points_cam, eps=_Z_EPS):
         """Pixels of camera-space points: ``(uv (..., 2) pixels, depth (...,) = z_cam)``.
 
         Applies the lens model only (no pose); used on camera-space sigma points.
         Points behind or on the camera plane give finite (meaningless) pixels;
-        cull them with depth.
+        cull them with depth. Perspective division uses ``|z| >= eps`` (sign kept).
         """
         p = _as_float(points_cam, "points_cam", 3)
         xp = _xp(p)
@@ -468,7 +806,7 @@ class Camera:
             s = theta_d / rho
             xn, yn = x * s, y * s
         else:
-            zs = xp.where(z >= 0, xp.maximum(z, _Z_EPS), xp.minimum(z, -_Z_EPS))
+            zs = xp.where(z >= 0, xp.maximum(z, eps), xp.minimum(z, -eps))
             xn, yn = x / zs, y / zs
             if self.model == "opencv":
                 r2 = xn * xn + yn * yn
@@ -477,12 +815,13 @@ class Camera:
         uv = xp.stack([self.fx * xn + self.cx, self.fy * yn + self.cy], axis=-1)
         return uv, z
 
-    def project_points(self, points):
+    def project_points(self, points, eps=_Z_EPS):
         """Project world points (..., 3): ``(uv (..., 2) pixels, depth (...,) = z_cam)``.
 
-        Same array type as ``points``; differentiable for MLX arrays.
+        Same array type as ``points``; differentiable for MLX arrays. Depth is not
+        culled: points behind the camera have negative depth; mask on it.
         """
-        return self.camera_to_pixels(self.world_to_camera(points))
+        return self.camera_to_pixels(self.world_to_camera(points), eps=eps)
 
     def _pixel_rays_camera(self, uv):
         """Camera-space ray (dx, dy, dz), not unit, through pixels ``uv`` of a projective model.
@@ -534,6 +873,10 @@ class Camera:
             xc, yc, zc = dx * s, dy * s, depth
         return _apply(self.camtoworld[:3], xc, yc, zc)
 
+    def unproject_points(self, xy, depth):
+        """``unproject`` under the original mlx3D library's name."""
+        return self.unproject(xy, depth)
+
     def pixel_centers(self) -> np.ndarray:
         """(H, W, 2) float64 continuous coordinates of every pixel centre, ``(j + 0.5, i + 0.5)``."""
         u = np.arange(self.width, dtype=np.float64) + 0.5
@@ -564,6 +907,17 @@ class Camera:
         zero = dx * 0.0
         origins = _apply(c2w, zero, zero, zero)
         return origins, dirs
+
+    def generate_rays(self):
+        """One ray per pixel centre: ``(origins, directions)``, (H, W, 3) float32 MLX arrays.
+
+        ``rays()`` as MLX arrays (the original mlx3D library's name and type);
+        directions are unit.
+        """
+        import mlx.core as mx
+
+        origins, dirs = self.rays()
+        return mx.array(origins, dtype=mx.float32), mx.array(dirs, dtype=mx.float32)
 
 
 def _brown_conrady(x, y, dist):

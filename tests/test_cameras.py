@@ -14,7 +14,7 @@ import mlx.core as mx
 import numpy as np
 import pytest
 
-from mlx3d.cameras import Camera
+from mlx3d.cameras import Camera, focal_to_fov, fov_to_focal, look_at, look_at_view_transform
 
 W, H = 64, 48
 
@@ -47,8 +47,8 @@ def pose(R, t):
 
 def camera(model="pinhole", **kw):
     """A camera with a non-trivial pose looking at the world origin from about 4 units."""
-    lens = {"focal": 12.0} if model == "orthographic" else {"fov": 70.0}
-    base = Camera.look_at((2.0, -3.0, 1.5), (0.1, 0.2, -0.1), width=W, height=H,
+    lens = {"focal": 12.0} if model == "orthographic" else {"hfov": 70.0}
+    base = Camera.look_at((2.0, -3.0, 1.5), (0.1, 0.2, -0.1), (0.0, 0.0, 1.0), width=W, height=H,
                           model=model, dist=MODELS[model], **lens)
     return dataclasses.replace(base, cx=W / 2 + 1.3, cy=H / 2 - 0.7, **kw)
 
@@ -152,36 +152,276 @@ def test_look_at_centre_up_and_eye():
     assert cam.R[1] @ up < 0 and abs(cam.R[0] @ up) < 1e-12
 
 
-def test_look_at_fov_focal_relation():
-    fov = 63.0
-    cam = Camera.look_at((0, 0, 0), (0, 5, 0), width=W, height=H, fov=fov)
-    assert cam.fx == pytest.approx((W / 2) / math.tan(math.radians(fov) / 2), rel=1e-12)
+def test_look_at_hfov_focal_relation():
+    hfov = 63.0
+    cam = Camera.look_at((0, 0, 0), (0, 5, 0), (0, 0, 1), width=W, height=H, hfov=hfov)
+    assert cam.fx == pytest.approx((W / 2) / math.tan(math.radians(hfov) / 2), rel=1e-12)
     assert cam.fy == cam.fx and (cam.cx, cam.cy) == (W / 2, H / 2)
-    assert cam.fov_x == pytest.approx(math.radians(fov), abs=1e-12)
-    # Looking along +y with z up, a direction fov/2 to the right (+x) is the right image edge.
-    half = math.radians(fov) / 2
+    assert cam.fov_x == pytest.approx(math.radians(hfov), abs=1e-12)
+    # Looking along +y with z up, a direction hfov/2 to the right (+x) is the right image edge.
+    half = math.radians(hfov) / 2
     uv, _ = cam.project_points(np.array([math.sin(half), math.cos(half), 0.0]) * 3)
     np.testing.assert_allclose(uv, [W, H / 2], atol=1e-9)
-    same = Camera.look_at((0, 0, 0), (0, 5, 0), width=W, height=H, focal=cam.fx)
+    same = Camera.look_at((0, 0, 0), (0, 5, 0), (0, 0, 1), width=W, height=H, focal=cam.fx)
     assert same == cam
+    radians = Camera.look_at((0, 0, 0), (0, 5, 0), (0, 0, 1), width=W, height=H, hfov=math.radians(hfov),
+                             degrees=False)
+    assert radians.fx == pytest.approx(cam.fx, rel=1e-12)
 
 
 @pytest.mark.parametrize(
     "args, kw, match",
     [
         (((1, 2, 3), (1, 2, 3)), {"fov": 60}, "eye and at"),
-        (((0, 0, 0), (0, 0, 5)), {"fov": 60}, "up"),
+        (((0, 0, 0), (0, 5, 0)), {"fov": 60}, "up"),  # the default up is +y
+        (((0, 0, 0), (0, 0, 5), (0, 0, 1)), {"fov": 60}, "up"),
         (((0, 0, 0), (0, 1, 0), (0, 0, 0)), {"fov": 60}, "up"),
-        (((0, 0, 0), (0, 1, 0)), {}, "fov"),
-        (((0, 0, 0), (0, 1, 0)), {"fov": 60, "focal": 50}, "fov"),
-        (((0, 0, 0), (0, 1, 0)), {"fov": 180}, "fov"),
-        (((0, 0, 0), (0, 1, 0)), {"focal": -3}, "focal"),
+        (((0, 0, 0), (0, 0, 1)), {"fov": 60, "focal": 50}, "fov"),
+        (((0, 0, 0), (0, 0, 1)), {"fov": 60, "hfov": 50}, "hfov"),
+        (((0, 0, 0), (0, 0, 1)), {"hfov": 60, "focal": 50}, "focal"),
+        (((0, 0, 0), (0, 0, 1)), {"fov": 180}, "fov"),
+        (((0, 0, 0), (0, 0, 1)), {"hfov": 0}, "hfov"),
+        (((0, 0, 0), (0, 0, 1)), {"fov": 3.2, "degrees": False}, "radians"),
+        (((0, 0, 0), (0, 0, 1)), {"focal": -3}, "focal"),
         (((0, 0, 0), (0, 1)), {"fov": 60}, "at"),
     ],
 )
 def test_look_at_errors(args, kw, match):
     with pytest.raises(ValueError, match=match):
         Camera.look_at(*args, width=W, height=H, **kw)
+    with pytest.raises(TypeError, match="pose"):
+        Camera.look_at((0, 0, -4), R=np.eye(3))
+
+
+# --------------------------------------------------------------------- the original mlx3D API
+#
+# Oracles: poses and pixels derived by hand below, from the original's documented
+# conventions (x_cam = R x_world + t, OpenCV axes, u = fx x/z + cx, v = fy y/z + cy,
+# look_at's default up = +y and fov = vertical degrees, 60 by default).
+
+# eye (0, 0, -4) looking at the origin with +y up: forward +z, right = forward x up = -x,
+# down = -y. So R = diag(-1, -1, 1) and t = -R eye = (0, 0, 4).
+R_BACK = np.diag([-1.0, -1.0, 1.0])
+T_BACK = np.array([0.0, 0.0, 4.0])
+# eye (3, 0, 0) looking at the origin with +y up: forward -x, right = (-x) x (+y) = -z, down = -y.
+R_SIDE = np.array([[0.0, 0.0, -1.0], [0.0, -1.0, 0.0], [-1.0, 0.0, 0.0]])
+T_SIDE = np.array([0.0, 0.0, 3.0])
+
+
+def test_original_look_at_defaults():
+    cam = Camera.look_at(eye=(0, 0, -4), at=(0, 0, 0), width=96, height=64, fov=50)
+    f = 32.0 / math.tan(math.radians(25.0))  # vertical: half the height over tan(fov / 2)
+    assert cam.fx == pytest.approx(f, rel=1e-12) and cam.fy == pytest.approx(f, rel=1e-12)
+    assert (cam.cx, cam.cy, cam.width, cam.height) == (48.0, 32.0, 96, 64)
+    assert cam.fov_y == pytest.approx(math.radians(50.0), abs=1e-12)
+    assert cam.fov_x == pytest.approx(2 * math.atan(48.0 / f), abs=1e-12)
+    np.testing.assert_allclose(cam.R, R_BACK, atol=1e-15)
+    np.testing.assert_allclose(cam.t, T_BACK, atol=1e-15)
+    np.testing.assert_allclose(np.array(cam.camera_center), [0.0, 0.0, -4.0], atol=1e-6)
+    assert (cam.znear, cam.zfar) == (cam.near, cam.far) == (0.01, 1e10)
+    assert cam.orthographic is False and cam.fisheye is False and cam.distortion is None
+
+    everything_default = Camera.look_at((0, 0, -4))
+    assert (everything_default.width, everything_default.height) == (512, 512)
+    assert everything_default.fov_y == pytest.approx(math.radians(60.0), abs=1e-12)
+    assert everything_default.fx == pytest.approx(256.0 / math.tan(math.radians(30.0)), rel=1e-12)
+    np.testing.assert_allclose(everything_default.R, R_BACK, atol=1e-15)
+
+    positional = Camera.look_at((0, 0, -4), (0, 0, 0), (0, 1, 0), 50, 96, 64)
+    assert positional == cam
+    radians = Camera.look_at((0, 0, -4), fov=math.radians(50), width=96, height=64, degrees=False)
+    assert radians.fy == pytest.approx(cam.fy, rel=1e-12)
+
+
+def test_original_look_at_projects_known_pixels():
+    cam = Camera.look_at(eye=(0, 0, -4), at=(0, 0, 0), width=96, height=64, fov=50)
+    f = cam.fy
+    pts = np.array([
+        [0.0, 0.0, 0.0],  # the target: on the optical axis
+        [0.0, 0.0, 3.0],  # farther along the axis
+        [0.0, 1.0, 0.0],  # up the world y axis: camera (0, -1, 4)
+        [1.0, 0.0, 0.0],  # +x: camera (-1, 0, 4), left in the image
+        [0.0, -1.0, 0.0],  # down
+    ])
+    uv, depth = cam.project_points(pts)
+    np.testing.assert_allclose(uv, [[48, 32], [48, 32], [48, 32 - f / 4], [48 - f / 4, 32], [48, 32 + f / 4]],
+                               atol=1e-12)
+    np.testing.assert_allclose(depth, [4.0, 7.0, 4.0, 4.0, 4.0], atol=1e-12)
+    assert uv[2, 1] < 32  # upper half of the image with the y-up default
+    # The vertical field of view: a point fov/2 above the axis lands on the top edge.
+    half = math.radians(25.0)
+    uv_top, _ = cam.project_points(np.array([0.0, 4.0 * math.tan(half), 0.0]))
+    np.testing.assert_allclose(uv_top, [48.0, 0.0], atol=1e-9)
+    # MLX points in, MLX out (as in the original); eps is accepted.
+    uvm, dm = cam.project_points(mx.array(pts.astype(np.float32)), eps=1e-8)
+    assert isinstance(uvm, mx.array) and isinstance(dm, mx.array)
+    np.testing.assert_allclose(np.array(uvm), uv, atol=1e-4)
+
+
+def test_original_look_at_off_axis_pose():
+    cam = Camera.look_at(eye=(3, 0, 0), at=(0, 0, 0), width=W, height=H, fov=40)
+    np.testing.assert_allclose(cam.R, R_SIDE, atol=1e-15)
+    np.testing.assert_allclose(cam.t, T_SIDE, atol=1e-15)
+    uv, _ = cam.project_points(np.array([[0.0, 0.5, 0.0], [0.0, 0.0, 1.0]]))
+    assert uv[0, 1] < H / 2 and uv[0, 0] == pytest.approx(W / 2, abs=1e-12)  # +y is up
+    assert uv[1, 0] < W / 2  # +z is to the left when looking along -x with y up
+
+
+def test_original_constructor_forms_equal_look_at():
+    ref = Camera.look_at(eye=(0, 0, -4), at=(0, 0, 0), width=96, height=64, fov=50)
+    f = ref.fx
+    by_keyword = Camera(R=R_BACK, t=T_BACK, fx=f, fy=f, cx=48.0, cy=32.0, width=96, height=64)
+    positional = Camera(R_BACK, T_BACK, f, f, 48.0, 32.0, 96, 64)
+    mlx_arrays = Camera(mx.array(R_BACK.astype(np.float32)), mx.array(T_BACK.astype(np.float32)),
+                        f, f, 48.0, 32.0, 96, 64, 0.01)
+    lists = Camera(R_BACK.tolist(), T_BACK.tolist(), f, f, 48.0, 32.0, 96, 64, znear=0.01, zfar=1e10)
+    for cam in (by_keyword, positional, mlx_arrays, lists):
+        assert cam == ref
+    from_fov = Camera.from_fov(50, 96, 64, R=R_BACK, t=T_BACK)
+    assert from_fov.fy == pytest.approx(f, rel=1e-12)
+    np.testing.assert_array_equal(from_fov.viewmat, ref.viewmat)
+    assert from_fov.fov_y == pytest.approx(math.radians(50), abs=1e-12)
+    assert Camera.from_fov(math.radians(50), 96, 64, degrees=False).fy == pytest.approx(f, rel=1e-12)
+    np.testing.assert_array_equal(Camera.from_fov(50, 96, 64).viewmat, np.eye(4))
+
+
+def test_original_constructor_random_pose():
+    rng = np.random.default_rng(11)
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    q *= np.sign(np.linalg.det(q))
+    t = rng.normal(size=3)
+    cam = Camera(R=q, t=t, fx=70.0, fy=65.0, cx=30.0, cy=20.0, width=W, height=H, znear=0.2, zfar=50.0)
+    assert (cam.near, cam.far, cam.znear, cam.zfar) == (0.2, 50.0, 0.2, 50.0)
+    p = rng.normal(size=(20, 3)) + q.T @ (np.array([0.0, 0.0, 5.0]) - t)  # around 5 units in front
+    pc = p @ q.T + t
+    uv, depth = cam.project_points(p)
+    np.testing.assert_allclose(uv, np.column_stack([70 * pc[:, 0] / pc[:, 2] + 30, 65 * pc[:, 1] / pc[:, 2] + 20]),
+                               atol=1e-9)
+    np.testing.assert_allclose(depth, pc[:, 2], atol=1e-12)
+    np.testing.assert_allclose(np.array(cam.camera_center), -q.T @ t, atol=1e-5)
+    m = np.array(cam.world_to_camera_matrix)
+    np.testing.assert_allclose(m[:3, :3], q, atol=1e-6)
+    np.testing.assert_allclose(m[:3, 3], t, atol=1e-6)
+    np.testing.assert_allclose(m[3], [0, 0, 0, 1])
+    np.testing.assert_allclose(cam.camera_to_world(cam.world_to_camera(p)), p, atol=1e-12)
+    np.testing.assert_allclose(cam.unproject_points(uv, depth), p, atol=1e-9)
+    # Rebuilding from the attributes a script would read gives the same camera.
+    assert Camera(cam.R, cam.t, cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height, cam.znear, cam.zfar) == cam
+
+
+def test_module_look_at_functions():
+    r, t = look_at((0, 0, -4), (0, 0, 0), (0, 1, 0))
+    assert isinstance(r, mx.array) and isinstance(t, mx.array)
+    np.testing.assert_allclose(np.array(r), R_BACK, atol=1e-7)
+    np.testing.assert_allclose(np.array(t), T_BACK, atol=1e-6)
+    # On a sphere: azim 180 from +z about +y puts the camera at (0, 0, -dist); azim 90 at (+dist, 0, 0).
+    r, t = look_at_view_transform(dist=4.0, elev=0.0, azim=180.0)
+    np.testing.assert_allclose(np.array(r), R_BACK, atol=1e-6)
+    np.testing.assert_allclose(np.array(t), T_BACK, atol=1e-6)
+    r, t = look_at_view_transform(dist=3.0, azim=math.pi / 2, degrees=False)
+    np.testing.assert_allclose(np.array(r), R_SIDE, atol=1e-6)
+    np.testing.assert_allclose(np.array(t), T_SIDE, atol=1e-6)
+    # Elevation raises the camera: it then looks down at `at`, which stays at the image centre.
+    r, t = look_at_view_transform(dist=5.0, elev=30.0, azim=40.0, at=(1.0, 2.0, 3.0))
+    cam = Camera(r, t, 50.0, 50.0, W / 2, H / 2, W, H)
+    centre = np.array([1.0, 2.0, 3.0]) + 5.0 * np.array([math.cos(math.radians(30)) * math.sin(math.radians(40)),
+                                                         math.sin(math.radians(30)),
+                                                         math.cos(math.radians(30)) * math.cos(math.radians(40))])
+    np.testing.assert_allclose(cam.center, centre, atol=1e-5)
+    uv, depth = cam.project_points(np.array([1.0, 2.0, 3.0]))
+    np.testing.assert_allclose(uv, [W / 2, H / 2], atol=1e-4)
+    assert depth == pytest.approx(5.0, abs=1e-5)
+    assert fov_to_focal(math.pi / 2, 100) == pytest.approx(50.0, rel=1e-12)
+    assert focal_to_fov(50.0, 100) == pytest.approx(math.pi / 2, rel=1e-12)
+    assert focal_to_fov(fov_to_focal(0.7, 64), 64) == pytest.approx(0.7, rel=1e-12)
+    with pytest.raises(ValueError, match="up"):
+        look_at((0, 0, 0), (0, 3, 0), (0, 1, 0))
+
+
+def test_original_orthographic_camera():
+    cam = Camera.orthographic_camera(2.0, W, H, R=R_BACK, t=T_BACK)
+    assert cam.orthographic and cam.model == "orthographic"
+    assert cam.fx == cam.fy == pytest.approx((H / 2) / 2.0)
+    # Camera y = -world y; the view spans camera y in [-2, 2] over the image height, at any depth.
+    uv, _ = cam.project_points(np.array([[0.0, 2.0, 0.0], [0.0, -2.0, 7.0], [0.5, 0.0, -1.0]]))
+    np.testing.assert_allclose(uv, [[W / 2, 0.0], [W / 2, H], [W / 2 - 0.5 * H / 4, H / 2]], atol=1e-12)
+    assert Camera(R_BACK, T_BACK, 6.0, 6.0, 32.0, 24.0, W, H, orthographic=True) == dataclasses.replace(
+        cam, fx=6.0, fy=6.0)
+    ortho = Camera.look_at((0, 0, -4), width=W, height=H, orthographic=True, focal=6.0)
+    assert ortho.model == "orthographic" and ortho.fx == 6.0
+
+
+def test_original_lens_arguments():
+    base = dict(R=R_BACK, t=T_BACK, fx=45.0, fy=47.0, cx=31.0, cy=25.0, width=W, height=H)
+    bc = Camera(**base, distortion=OPENCV_DIST[:4])
+    assert bc.model == "opencv" and bc.dist == OPENCV_DIST[:4] + (0.0,) and bc.distortion == bc.dist
+    five = Camera(**base, distortion=OPENCV_DIST)
+    assert five == Camera(W, H, 45.0, 47.0, 31.0, 25.0, pose(R_BACK, T_BACK), model="opencv", dist=OPENCV_DIST)
+    pc = random_cam_points(np.random.default_rng(9), 20)
+    np.testing.assert_allclose(five.camera_to_pixels(pc)[0], opencv_reference(pc, five.K, OPENCV_DIST), atol=1e-9)
+    fish = Camera(**base, distortion=FISHEYE_DIST, fisheye=True)
+    assert fish.model == "fisheye" and fish.fisheye and fish.distortion == FISHEYE_DIST
+    np.testing.assert_allclose(fish.camera_to_pixels(pc)[0], fisheye_reference(pc, fish.K, FISHEYE_DIST), atol=1e-9)
+    equidistant = Camera(**base, fisheye=True)
+    assert equidistant.model == "fisheye" and equidistant.dist == (0.0,) * 4
+    assert Camera(**base, distortion=None).model == "pinhole"
+    with pytest.raises(ValueError, match="orthographic"):
+        Camera(**base, orthographic=True, fisheye=True)
+    with pytest.raises(ValueError, match="dist"):
+        Camera(**base, distortion=(0.1, 0.2))
+
+
+def test_replace_with_original_names():
+    cam = Camera.look_at(eye=(0, 0, -4), width=W, height=H)
+    moved = dataclasses.replace(cam, t=T_BACK + [0.5, 0.0, 0.0])
+    np.testing.assert_array_equal(moved.R, cam.R)
+    np.testing.assert_allclose(moved.t, T_BACK + [0.5, 0.0, 0.0])
+    turned = dataclasses.replace(cam, R=R_SIDE, t=T_SIDE)
+    np.testing.assert_allclose(turned.center, [3.0, 0.0, 0.0], atol=1e-12)
+    assert dataclasses.replace(cam, znear=0.5, zfar=9.0).near == 0.5
+    assert dataclasses.replace(cam, znear=0.5, zfar=9.0).far == 9.0
+    ortho = dataclasses.replace(cam, orthographic=True)
+    assert ortho.model == "orthographic"
+    assert dataclasses.replace(ortho, orthographic=False).model == "pinhole"
+    assert dataclasses.replace(ortho, cx=3.0).model == "orthographic"
+    fish = dataclasses.replace(cam, fisheye=True, distortion=FISHEYE_DIST)
+    assert dataclasses.replace(fish, cx=3.0).dist == FISHEYE_DIST
+    assert dataclasses.replace(fish, distortion=None).dist == (0.0,) * 4  # still fisheye: equidistant
+
+
+def test_generate_rays_matches_rays():
+    cam = camera()
+    o, d = cam.generate_rays()
+    assert isinstance(o, mx.array) and isinstance(d, mx.array) and o.dtype == mx.float32
+    assert tuple(o.shape) == (H, W, 3) and tuple(d.shape) == (H, W, 3)
+    o_np, d_np = cam.rays()
+    np.testing.assert_allclose(np.array(o), o_np, atol=1e-6)
+    np.testing.assert_allclose(np.array(d), d_np, atol=1e-6)
+    # A centred camera's pixel grid is symmetric about the optical axis, so the mean ray is
+    # the view direction (+z from (0, 0, -4)) and every origin is the eye.
+    o, d = Camera.look_at((0, 0, -4), width=4, height=2, fov=40).generate_rays()
+    mean = np.array(d).mean(axis=(0, 1))
+    np.testing.assert_allclose(mean / np.linalg.norm(mean), [0.0, 0.0, 1.0], atol=1e-6)
+    np.testing.assert_allclose(np.array(o), np.broadcast_to([0.0, 0.0, -4.0], (2, 4, 3)), atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    "args, kw, error, match",
+    [
+        ((), {"width": W}, TypeError, "missing"),
+        ((W, H, 50.0, 50.0, 32.0, 24.0), {"fx": 3.0}, TypeError, "multiple"),
+        ((), {**dict(width=W, height=H, fx=50.0, fy=50.0, cx=32.0, cy=24.0), "focal": 3.0}, TypeError, "unexpected"),
+        ((R_BACK, T_BACK, 50.0, 50.0, 32.0, 24.0, W, H, 0.01, 1.0, False, None, False, 1), {}, TypeError, "at most"),
+        ((2.0 * R_BACK, T_BACK, 50.0, 50.0, 32.0, 24.0, W, H), {}, ValueError, "R: "),
+        ((np.eye(2), T_BACK, 50.0, 50.0, 32.0, 24.0, W, H), {}, ValueError, "R must have shape"),
+        ((R_BACK, (0.0, 1.0), 50.0, 50.0, 32.0, 24.0, W, H), {}, ValueError, "t must"),
+        ((R_BACK, (0.0, float("nan"), 1.0), 50.0, 50.0, 32.0, 24.0, W, H), {}, ValueError, "t must be finite"),
+        ((R_BACK, T_BACK, 50.0, 50.0, 32.0, 24.0, W, H), {"znear": 0.0}, ValueError, "near"),
+    ],
+)
+def test_original_constructor_errors(args, kw, error, match):
+    with pytest.raises(error, match=match):
+        Camera(*args, **kw)
 
 
 # --------------------------------------------------------------------- OpenGL poses

@@ -700,7 +700,7 @@ def test_dataset_from_frames(tmp_path):
     write_png(tmp_path / "a.png", image_pixels(0))
     from mlx3d.cameras import Camera
 
-    cam = Camera.look_at((0, -3, 0), (0, 0, 0), width=W, height=H, fov=60)
+    cam = Camera.look_at((0, -3, 0), (0, 0, 0), (0, 0, 1), width=W, height=H, hfov=60)
     ds = Dataset([Frame(cam, tmp_path / "a.png", "a")] * 9, cache_images=1)
     assert ds.test == [0, 8] and ds.scene_extent() == 0.0
     assert ds.load_image(-1)[0].shape == (H, W, 3)

@@ -17,7 +17,7 @@ def problem(camera_model="pinhole"):
     rng = np.random.default_rng(0)
     model = GaussianModel.from_points(rng.uniform(-0.5, 0.5, (80, 3)).astype(np.float32), rng.uniform(0, 1, (80, 3)), sh_degree=2, initial_opacity=0.6)
     kw = {"dist": (0.02, 0.0, 0.0, 0.0)} if camera_model == "fisheye" else {}
-    cam = Camera.look_at(eye=(0.0, -3.0, 1.0), at=(0, 0, 0), up=(0, 0, 1), width=32, height=24, fov=50.0, model=camera_model, **kw)
+    cam = Camera.look_at(eye=(0.0, -3.0, 1.0), at=(0, 0, 0), up=(0, 0, 1), width=32, height=24, hfov=50.0, model=camera_model, **kw)
     target = rng.uniform(0, 1, (24, 32, 3)).astype(np.float32)
     return model, cam, target
 

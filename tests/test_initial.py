@@ -21,7 +21,7 @@ SKY = (0.45, 0.62, 0.9)
 
 def _ring(n=8, radius=4.0, size=32, at=(0.0, 0.0, 0.0), height=1.5, fov=40.0):
     return [Camera.look_at(eye=(at[0] + radius * math.cos(a), at[1] + radius * math.sin(a), at[2] + height), at=at,
-                           width=size, height=size, fov=fov) for a in np.linspace(0, 2 * math.pi, n, endpoint=False)]
+                           up=(0, 0, 1), width=size, height=size, fov=fov) for a in np.linspace(0, 2 * math.pi, n, endpoint=False)]
 
 
 def _write_images(folder, cameras, colour, alpha=None):

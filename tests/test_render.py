@@ -36,7 +36,7 @@ BACKENDS = ["reference"] + (["cpu"] if _cpu_available() else [])
 
 
 def camera(width=48, height=40, **kw):
-    return Camera.look_at(eye=(0.0, -4.0, 0.0), at=(0.0, 0.0, 0.0), up=(0, 0, 1), width=width, height=height, fov=50.0, **kw)
+    return Camera.look_at(eye=(0.0, -4.0, 0.0), at=(0.0, 0.0, 0.0), up=(0, 0, 1), width=width, height=height, hfov=50.0, **kw)
 
 
 def scene(n=40, seed=0, spread=1.0):
@@ -167,7 +167,7 @@ def test_thousand_gaussians_stacked_on_one_pixel():
 
 def test_scene_far_from_origin_seen_from_close():
     offset = np.array([1e4, -2e4, 1e4], np.float32)
-    cam = Camera.look_at(eye=offset + [0, -3, 0], at=offset, up=(0, 0, 1), width=40, height=32, fov=50.0)
+    cam = Camera.look_at(eye=offset + [0, -3, 0], at=offset, up=(0, 0, 1), width=40, height=32, hfov=50.0)
     s = scene(20, seed=8, spread=0.5)
     s["means"] += offset
     results = check_case(cam, s, oracle=False)

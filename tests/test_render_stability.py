@@ -146,7 +146,7 @@ def _random_camera(rng, scale):
     far = 1e10 if rng.random() < 0.5 else near + distance * _log_uniform(rng, 0.5, 100.0)
     kw.update(near=near, far=far)
     if model != "orthographic" and rng.random() < 0.3:
-        cam = Camera.look_at(eye, target, up, width=width, height=height, fov=float(rng.uniform(0.01, 179.0)), **kw)
+        cam = Camera.look_at(eye, target, up, width=width, height=height, hfov=float(rng.uniform(0.01, 179.0)), **kw)
     else:
         cam = Camera.look_at(eye, target, up, width=width, height=height, focal=focal, **kw)
     return cam, distance, target

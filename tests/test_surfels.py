@@ -20,7 +20,7 @@ from mlx3d.transforms import matrix_to_quaternion, quaternion_to_matrix
 
 def front_camera(width=41, height=33, **kw):
     """Looks along +y from y=-4; odd sizes put the principal point on a pixel centre."""
-    return Camera.look_at(eye=(0.0, -4.0, 0.0), at=(0.0, 0.0, 0.0), up=(0, 0, 1), width=width, height=height, fov=50.0, **kw)
+    return Camera.look_at(eye=(0.0, -4.0, 0.0), at=(0.0, 0.0, 0.0), up=(0, 0, 1), width=width, height=height, hfov=50.0, **kw)
 
 
 def quat_from_z_to(normals):
@@ -91,7 +91,7 @@ def test_geometry_channels_composite_like_the_analytic_two_layer_case(planar):
 
 @pytest.mark.parametrize("model", ["pinhole", "orthographic"])
 def test_planar_depth_follows_a_tilted_disc(model):
-    kw = {"focal": 12.0} if model == "orthographic" else {"fov": 50.0}
+    kw = {"focal": 12.0} if model == "orthographic" else {"hfov": 50.0}
     cam = Camera.look_at(eye=(0.0, -4.0, 0.0), at=(0.0, 0.0, 0.0), up=(0, 0, 1), width=41, height=33, model=model, **kw)
     normal = np.array([0.5, -0.7, 0.3])
     normal /= np.linalg.norm(normal)
@@ -172,7 +172,7 @@ def test_geometry_channel_gradients_match_finite_differences():
 @pytest.mark.parametrize("model", ["pinhole", "fisheye"])
 def test_depth_normals_of_an_analytic_plane(model):
     kw = {"dist": (0.05, -0.01, 0.0, 0.0)} if model == "fisheye" else {}
-    cam = Camera.look_at(eye=(0.3, -3.0, 1.2), at=(0.0, 0.0, 0.0), up=(0, 0, 1), width=40, height=30, fov=60.0, model=model, **kw)
+    cam = Camera.look_at(eye=(0.3, -3.0, 1.2), at=(0.0, 0.0, 0.0), up=(0, 0, 1), width=40, height=30, hfov=60.0, model=model, **kw)
     normal = np.array([0.2, -0.9, 0.3])
     normal /= np.linalg.norm(normal)
     origins, dirs = cam.rays()
@@ -228,7 +228,7 @@ def surfel_problem(seed=0):
     rng = np.random.default_rng(seed)
     truth = plane_surfels(20)
     truth["colors"] = mx.array(rng.uniform(0, 1, (400, 3)).astype(np.float32))
-    cams = [Camera.look_at(eye=(2.5 * math.sin(a), -3.0, 2.5 * math.cos(a)), at=(0, 0, 0), up=(0, 0, 1), width=40, height=32, fov=50.0)
+    cams = [Camera.look_at(eye=(2.5 * math.sin(a), -3.0, 2.5 * math.cos(a)), at=(0, 0, 0), up=(0, 0, 1), width=40, height=32, hfov=50.0)
             for a in np.linspace(-0.8, 0.8, 5)]
     targets = [np.array(render_gaussians(c, **truth, background=(0, 0, 0))["image"]) for c in cams]
     start = GaussianModel.from_points(np.asarray(truth["means"]), np.asarray(truth["colors"]), sh_degree=0, initial_opacity=0.5)

@@ -138,7 +138,7 @@ def test_reset_opacities_caps_and_clears_moments():
 def small_problem(seed=0):
     rng = np.random.default_rng(seed)
     truth = GaussianModel.from_points(rng.uniform(-0.6, 0.6, (60, 3)).astype(np.float32), rng.uniform(0, 1, (60, 3)), sh_degree=1, initial_opacity=0.8)
-    cams = [Camera.look_at(eye=(3 * math.cos(a), 3 * math.sin(a), 0.5), at=(0, 0, 0), width=40, height=32, fov=45.0) for a in np.linspace(0, 2 * math.pi, 6, endpoint=False)]
+    cams = [Camera.look_at(eye=(3 * math.cos(a), 3 * math.sin(a), 0.5), at=(0, 0, 0), up=(0, 0, 1), width=40, height=32, hfov=45.0) for a in np.linspace(0, 2 * math.pi, 6, endpoint=False)]
     targets = [np.array(truth.render(c, background=(0, 0, 0))["image"]) for c in cams]
     start = GaussianModel.from_points(np.asarray(truth.means) + rng.normal(0, 0.05, (60, 3)).astype(np.float32), sh_degree=1, initial_opacity=0.3)
     return start, cams, targets
@@ -237,7 +237,7 @@ def test_relocation_correction_preserves_the_rendered_gaussian(copies):
     """N stacked copies with the paper's opacity/scale correction render like the original."""
     from mlx3d.render import render_gaussians
 
-    cam = Camera.look_at(eye=(0, -3, 0), at=(0, 0, 0), width=48, height=48, fov=40.0)
+    cam = Camera.look_at(eye=(0, -3, 0), at=(0, 0, 0), up=(0, 0, 1), width=48, height=48, fov=40.0)
     o, s = 0.7, np.array([[0.15, 0.15, 0.15]])
     new_o, new_s = relocation_correction(np.array([o]), s, np.array([copies]))
     assert 1 - (1 - new_o[0]) ** copies == pytest.approx(o)  # same peak alpha
@@ -297,7 +297,7 @@ def test_relocation_keeps_the_rendered_image():
         "sh_dc": mx.array(rng.normal(0, 0.8, (n, 1, 3)).astype(np.float32)),
         "sh_rest": mx.zeros((n, 0, 3)),
     }
-    cam = Camera.look_at(eye=(0, -3, 1), at=(0, 0, 0), width=64, height=64, fov=45.0)
+    cam = Camera.look_at(eye=(0, -3, 1), at=(0, 0, 0), up=(0, 0, 1), width=64, height=64, fov=45.0)
 
     def image(p):
         return np.array(GaussianModel(p).render(cam, background=(0, 0, 0))["image"])

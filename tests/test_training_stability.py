@@ -53,12 +53,12 @@ def ring_cameras():
         a = 2 * math.pi * k / N_VIEWS
         el = (0.15, 0.6)[k % 2]
         eye = (CAMERA_RADIUS * math.cos(a) * math.cos(el), CAMERA_RADIUS * math.sin(a) * math.cos(el), CAMERA_RADIUS * math.sin(el))
-        cams.append(Camera.look_at(eye=eye, at=(0, 0, 0), width=W, height=H, fov=50.0))
+        cams.append(Camera.look_at(eye=eye, at=(0, 0, 0), up=(0, 0, 1), width=W, height=H, hfov=50.0))
     return cams
 
 
 # a camera inside the ball of Gaussians, looking outwards
-INSIDE = Camera.look_at(eye=(0.1, -0.05, 0.05), at=(1.0, 0.3, 0.2), width=W, height=H, fov=60.0)
+INSIDE = Camera.look_at(eye=(0.1, -0.05, 0.05), at=(1.0, 0.3, 0.2), up=(0, 0, 1), width=W, height=H, hfov=60.0)
 
 
 def make_scene():

@@ -64,7 +64,7 @@ def _camera(elevation, azimuth, distance):
     el, az = math.radians(elevation), math.radians(azimuth)
     look = np.array(scene.LOOK_AT)
     eye = look + distance * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
-    return Camera.look_at(eye, look, width=SIZE, height=SIZE, fov=50.0)
+    return Camera.look_at(eye, look, up=(0, 0, 1), width=SIZE, height=SIZE, fov=50.0)
 
 
 @pytest.fixture(scope="module")

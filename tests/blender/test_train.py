@@ -336,7 +336,7 @@ def test_panel_train_section_shows_the_stages_a_step_runs(extension, clean_scene
         labels[method] = [entry[1] for entry in log if entry[0] == "label"]
     # the first step with every scheduled effect on: SH degree 3 from step 3,001 (no scene camera: a pinhole one)
     assert labels["vanilla"][0] == "A step (3,001) runs:"
-    pinhole = Camera.look_at(eye=(0, -3, 1), at=(0, 0, 0), width=64, height=64, fov=50.0)
+    pinhole = Camera.look_at(eye=(0, -3, 1), at=(0, 0, 0), up=(0, 0, 1), width=64, height=64, fov=50.0)
     assert labels["2dgs"][1:-1] == list(step_plan(TrainerConfig(method="2dgs", steps=7000), pinhole, 3, 3000).stages)
     assert "loss_normal_consistency" in labels["2dgs"] and "thickness_clamp" in labels["2dgs"]
     assert "loss_normal_consistency" not in labels["vanilla"] and "thickness_clamp" not in labels["vanilla"]
