@@ -304,11 +304,11 @@ class MeshExtraction:
 
     - the constructor (main thread) checks the object, reads its splats in its
       own (local) frame and turns them into oriented surfels
-      (``GaussianModel.surfel_points``, the only step that uses MLX); bad
+      (``GaussianModel.surfel_samples``, the only step that uses MLX); bad
       input raises here, before the long part;
     - ``compute(progress)`` reconstructs the surface from them
       (``mlx3d.meshing.reconstruct_surface``, numpy only, exactly what
-      ``GaussianModel.extract_surface_mesh`` does) and touches no Blender
+      ``GaussianModel.surface_mesh`` does) and touches no Blender
       data, so it may run on a worker thread: ``start()`` runs it on one,
       ``running`` and ``progress`` (done, total) follow it and ``cancel()``
       stops it at its next progress report;
@@ -338,7 +338,7 @@ class MeshExtraction:
             bpy.context.view_layer.update()
             to_local = np.linalg.inv(object_matrix(obj))
             centres = np.asarray(camera_centres, dtype=np.float64).reshape(-1, 3) @ to_local[:3, :3].T + to_local[:3, 3]
-        self.surfels = GaussianModel.from_arrays(arrays).surfel_points(float(min_opacity), int(max_points) if max_points else None, centres)
+        self.surfels = GaussianModel.from_arrays(arrays).surfel_samples(float(min_opacity), int(max_points) if max_points else None, centres)
         if len(self.surfels[0]) == 0:
             raise MeshingError(f"no splat of '{obj.name}' has opacity >= {min_opacity:g} (of {self.count:,}); nothing to mesh")
         self.surface = self.mesh = None
@@ -497,12 +497,13 @@ def extract_mesh(obj, *, resolution=128, min_opacity=0.01, max_points=200000, tr
     """A triangle mesh of the splats' surface as a new mesh object under the splat object.
 
     The splats are read in the object's own frame and meshed by
-    ``GaussianModel.extract_surface_mesh`` (resolution: voxels along the
+    ``GaussianModel.surface_mesh`` (resolution: voxels along the
     longest side of the grid; min_opacity: splats below it are left out;
     max_points: at most this many surfels (None or 0: all); trim: voxels,
     0 = off, None = mlx3d's default; camera_centres: (C,3) world positions,
-    e.g. of the training cameras, that the splats' normals face, else they
-    point away from the splats' centroid). The
+    e.g. of the training cameras: each splat's normal is turned to face the
+    nearest; None keeps each splat's own normal, the axis of its smallest
+    scale as its rotation gives it). The
     object, named ``name`` (default "<splat object> mesh") and linked to
     ``collection`` (default the splat object's), is parented to the splat
     object with an identity parent inverse, so its world matrix is the splat

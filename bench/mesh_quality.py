@@ -169,7 +169,7 @@ def main() -> None:
         trained = json.loads(subprocess.run(cmd, stdout=subprocess.PIPE, text=True, check=True).stdout.strip().splitlines()[-1])
         model = GaussianModel.load_ply(ply)
         t0 = time.perf_counter()
-        mesh = model.extract_surface_mesh(resolution=args.resolution, orient_towards=centres)
+        mesh = model.surface_mesh(resolution=args.resolution, orient_towards=centres)
         extract_s = time.perf_counter() - t0
         mesh_path = os.path.join(args.out, f"{method}_mesh.ply")
         mesh.save_ply(mesh_path)

@@ -277,7 +277,7 @@ def cmd_mesh(args) -> None:
         centres = [frame.camera.center for frame in load_dataset(args.data).frames]
     trim = DEFAULT_TRIM if args.trim is None else args.trim
     with step(f"extracting a mesh at resolution {args.resolution}"):
-        mesh = model.extract_surface_mesh(
+        mesh = model.surface_mesh(
             resolution=args.resolution, padding=args.padding, min_opacity=args.min_opacity, max_points=args.max_points,
             orient_towards=centres, trim=trim, progress=ProgressLine("meshing"),
         )
@@ -416,7 +416,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--min-opacity", type=float, default=0.01, help="ignore Gaussians below this opacity")
     p.add_argument("--max-points", type=int, default=200_000, help="keep the N largest opaque discs (default 200000)")
     p.add_argument("--trim", type=float, default=None, metavar="VOXELS", help="drop faces farther than this from every disc centre (0: keep all)")
-    p.add_argument("--data", metavar="DATA_DIR", help="orient normals towards this dataset's cameras (default: away from the centroid)")
+    p.add_argument("--data", metavar="DATA_DIR", help="turn each normal towards the nearest camera of this dataset (default: each Gaussian's own, its thinnest axis)")
     reading(p)
 
     p = add("train", cmd_train, "Train Gaussians on a dataset (COLMAP, NeRF-synthetic or nerfstudio folder) and write a PLY.")

@@ -2,33 +2,80 @@
 
 Conventions (used throughout mlx3d):
 
-- Quaternions are ``(w, x, y, z)``, the order of ``mathutils.Quaternion``, and
-  rotate column vectors: ``v' = R(q) v``.
-- Euler angles ``(rx, ry, rz)`` are rotations about the fixed world X, then Y,
-  then Z axis: ``R = Rz @ Ry @ Rx`` (Blender's default ``'XYZ'`` mode).
+- Quaternions are ``(w, x, y, z)`` (scalar first), the order of
+  ``mathutils.Quaternion`` and of mlx3D, and rotate column vectors:
+  ``v' = R(q) v``, the same rotation as the product ``q (0, v) q*``.
+- Euler angles ``(rx, ry, rz)`` in degrees (``euler_to_matrix``) are rotations
+  about the fixed world X, then Y, then Z axis: ``R = Rz @ Ry @ Rx`` (Blender's
+  default ``'XYZ'`` mode). ``euler_angles_to_matrix`` is mlx3D's: radians and
+  ``R = R_a0 @ R_a1 @ R_a2`` for a convention string ``a0 a1 a2``.
 - An affine map is a 4x4 matrix ``A`` acting on column vectors ``[x, 1]``;
   ``A = T @ R @ S`` composes scale, then rotation, then translation.
 
-``quaternion_to_matrix`` works on numpy and MLX arrays (the renderer uses it on
-MLX arrays); everything else here is float64 numpy for exactness.
+The rotation conversions (``quaternion_to_matrix`` ... ``random_rotations``,
+the names of mlx3D's ``mlx3d.transforms``, also importable as
+``mlx3d.transforms.rotations``) take numpy or MLX arrays and return the same
+kind (MLX results stay differentiable); batch dimensions ``...`` are free.
+Lists become float64 numpy. Everything from ``euler_to_matrix`` on is float64
+numpy for exactness.
 """
 
 from __future__ import annotations
 
+import sys
+import types
 from dataclasses import dataclass
 
 import numpy as np
 
 from .errors import TransformError
 
+ROTATION_NAMES = (
+    "quaternion_to_matrix",
+    "matrix_to_quaternion",
+    "axis_angle_to_quaternion",
+    "quaternion_to_axis_angle",
+    "axis_angle_to_matrix",
+    "matrix_to_axis_angle",
+    "euler_angles_to_matrix",
+    "rotation_6d_to_matrix",
+    "matrix_to_rotation_6d",
+    "quaternion_multiply",
+    "quaternion_invert",
+    "quaternion_apply",
+    "standardize_quaternion",
+    "random_quaternions",
+    "random_rotations",
+)
+
+
+def _is_mlx(a) -> bool:
+    return type(a).__module__.startswith("mlx")
+
+
+def _lib(a):
+    """The array library of ``a``: ``mlx.core`` for MLX arrays, else numpy."""
+    if _is_mlx(a):
+        import mlx.core as mx
+
+        return mx
+    return np
+
+
+def _array(a):
+    """MLX arrays and numpy float arrays as they are; anything else as float64 numpy."""
+    if _is_mlx(a) or (isinstance(a, np.ndarray) and np.issubdtype(a.dtype, np.floating)):
+        return a
+    return np.asarray(a, dtype=np.float64)
+
 
 def _stack_like(like, arrays, axis):
     """``stack`` from the library of ``like`` (numpy, or MLX without importing it here)."""
-    if type(like).__module__.startswith("mlx"):
-        import mlx.core as mx
+    return _lib(like).stack(arrays, axis=axis)
 
-        return mx.stack(arrays, axis=axis)
-    return np.stack(arrays, axis=axis)
+
+def _norm(a, keepdims=True):
+    return _lib(a).linalg.norm(a, axis=-1, keepdims=keepdims)
 
 
 def quaternion_to_matrix(quats):
@@ -38,6 +85,7 @@ def quaternion_to_matrix(quats):
     Returns (..., 3, 3) of the same array type. A zero quaternion gives a
     finite (degenerate) matrix rather than NaN.
     """
+    quats = _array(quats)
     norm2 = (quats * quats).sum(axis=-1, keepdims=True)
     q = quats / ((norm2 + 1e-24) ** 0.5)
     w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
@@ -49,44 +97,166 @@ def quaternion_to_matrix(quats):
     return _stack_like(quats, rows, -2)
 
 
-def matrix_to_quaternion(mats: np.ndarray) -> np.ndarray:
+def matrix_to_quaternion(mats):
     """Unit quaternions (w,x,y,z), w >= 0, from proper rotation matrices (..., 3, 3).
 
-    Uses the numerically robust branch choice of Shepperd's method.
+    Uses the numerically robust branch choice of Shepperd's method. numpy
+    input gives float64; MLX input gives MLX (differentiable).
     """
-    m = np.asarray(mats, dtype=np.float64)
+    m = mats if _is_mlx(mats) else np.asarray(mats, dtype=np.float64)
+    xp = _lib(m)
     m00, m11, m22 = m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]
     # Four candidate (unnormalised) quaternions; pick the one with the largest
     # leading component for each matrix.
     trace = m00 + m11 + m22
-    cands = np.stack(
+    cands = xp.stack(
         [
-            np.stack([1 + trace, m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], -1),
-            np.stack([m[..., 2, 1] - m[..., 1, 2], 1 + m00 - m11 - m22, m[..., 0, 1] + m[..., 1, 0], m[..., 0, 2] + m[..., 2, 0]], -1),
-            np.stack([m[..., 0, 2] - m[..., 2, 0], m[..., 0, 1] + m[..., 1, 0], 1 - m00 + m11 - m22, m[..., 1, 2] + m[..., 2, 1]], -1),
-            np.stack([m[..., 1, 0] - m[..., 0, 1], m[..., 0, 2] + m[..., 2, 0], m[..., 1, 2] + m[..., 2, 1], 1 - m00 - m11 + m22], -1),
+            xp.stack([1 + trace, m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], -1),
+            xp.stack([m[..., 2, 1] - m[..., 1, 2], 1 + m00 - m11 - m22, m[..., 0, 1] + m[..., 1, 0], m[..., 0, 2] + m[..., 2, 0]], -1),
+            xp.stack([m[..., 0, 2] - m[..., 2, 0], m[..., 0, 1] + m[..., 1, 0], 1 - m00 + m11 - m22, m[..., 1, 2] + m[..., 2, 1]], -1),
+            xp.stack([m[..., 1, 0] - m[..., 0, 1], m[..., 0, 2] + m[..., 2, 0], m[..., 1, 2] + m[..., 2, 1], 1 - m00 - m11 + m22], -1),
         ],
         axis=-2,
     )  # (..., 4 candidates, 4)
-    best = np.argmax(np.stack([1 + trace, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22], -1), axis=-1)
-    q = np.take_along_axis(cands, best[..., None, None], axis=-2)[..., 0, :]
-    q /= np.linalg.norm(q, axis=-1, keepdims=True)
-    return np.where(q[..., :1] < 0, -q, q)
+    best = xp.argmax(xp.stack([1 + trace, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22], -1), axis=-1)
+    index = xp.broadcast_to(best[..., None, None], (*best.shape, 1, 4))
+    q = xp.take_along_axis(cands, index, axis=-2)[..., 0, :]
+    q = q / _norm(q)
+    return xp.where(q[..., :1] < 0, -q, q)
 
 
-def quaternion_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def standardize_quaternion(quats):
+    """The same rotations with a non-negative real part (q and -q are one rotation)."""
+    quats = _array(quats)
+    return _lib(quats).where(quats[..., :1] < 0, -quats, quats)
+
+
+def quaternion_multiply(a, b):
     """Hamilton product ``a ⊗ b`` of (..., 4) w,x,y,z quaternions (rotation b, then a)."""
-    aw, ax, ay, az = np.moveaxis(a, -1, 0)
-    bw, bx, by, bz = np.moveaxis(b, -1, 0)
-    return np.stack(
+    a, b = _array(a), _array(b)
+    aw, ax, ay, az = a[..., 0], a[..., 1], a[..., 2], a[..., 3]
+    bw, bx, by, bz = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
+    return _stack_like(
+        a,
         [
             aw * bw - ax * bx - ay * by - az * bz,
             aw * bx + ax * bw + ay * bz - az * by,
             aw * by - ax * bz + ay * bw + az * bx,
             aw * bz + ax * by - ay * bx + az * bw,
         ],
-        axis=-1,
+        -1,
     )
+
+
+def quaternion_invert(quats):
+    """The inverse rotation: the conjugate (w, -x, -y, -z); the inverse of a unit quaternion."""
+    quats = _array(quats)
+    sign = _lib(quats).array([1.0, -1.0, -1.0, -1.0], dtype=quats.dtype)
+    return quats * sign
+
+
+def quaternion_apply(quats, points):
+    """Rotate points (..., 3) by quaternions (..., 4) (normalised here): ``q (0, p) q*``."""
+    quats, points = _array(quats), _array(points)
+    xp = _lib(quats)
+    q = quats / _norm(quats)
+    p = xp.concatenate([xp.zeros_like(points[..., :1]), points], axis=-1)
+    return quaternion_multiply(quaternion_multiply(q, p), quaternion_invert(q))[..., 1:]
+
+
+def _half_sinc(angle):
+    """sin(angle/2) / angle, with its series near 0."""
+    xp = _lib(angle)
+    small = xp.abs(angle) < 1e-6
+    safe = xp.where(small, xp.ones_like(angle), angle)
+    return xp.where(small, 0.5 - angle * angle / 48.0, xp.sin(0.5 * safe) / safe)
+
+
+def axis_angle_to_quaternion(axis_angle):
+    """Quaternions (..., 4) from axis-angle vectors (..., 3): direction = axis, length = angle (radians)."""
+    axis_angle = _array(axis_angle)
+    angle = _norm(axis_angle)
+    return _lib(axis_angle).concatenate([_lib(angle).cos(0.5 * angle), axis_angle * _half_sinc(angle)], axis=-1)
+
+
+def quaternion_to_axis_angle(quats):
+    """Axis-angle vectors (..., 3), angle in [0, π], from quaternions (..., 4) (any length)."""
+    q = standardize_quaternion(_array(quats))
+    q = q / _norm(q)
+    vec = q[..., 1:]
+    angle = 2.0 * _lib(q).arctan2(_norm(vec), q[..., :1])
+    return vec / _half_sinc(angle)
+
+
+def axis_angle_to_matrix(axis_angle):
+    """Rotation matrices (..., 3, 3) from axis-angle vectors (..., 3)."""
+    return quaternion_to_matrix(axis_angle_to_quaternion(axis_angle))
+
+
+def matrix_to_axis_angle(mats):
+    """Axis-angle vectors (..., 3) from rotation matrices (..., 3, 3)."""
+    return quaternion_to_axis_angle(matrix_to_quaternion(mats))
+
+
+def _axis_rotation(axis: str, angle):
+    xp = _lib(angle)
+    c, s = xp.cos(angle), xp.sin(angle)
+    one, zero = xp.ones_like(angle), xp.zeros_like(angle)
+    rows = {
+        "X": [[one, zero, zero], [zero, c, -s], [zero, s, c]],
+        "Y": [[c, zero, s], [zero, one, zero], [-s, zero, c]],
+        "Z": [[c, -s, zero], [s, c, zero], [zero, zero, one]],
+    }[axis]
+    return xp.stack([xp.stack(r, axis=-1) for r in rows], axis=-2)
+
+
+def euler_angles_to_matrix(euler_angles, convention: str = "XYZ"):
+    """Rotation matrices (..., 3, 3) from Euler angles (..., 3) in radians (mlx3D's convention).
+
+    ``convention`` names the axis of each angle, e.g. ``"XYZ"`` gives
+    ``R_X(a0) @ R_Y(a1) @ R_Z(a2)`` (rotations about the moving axes, X first).
+    For mlx3d's degree-based Blender convention see ``euler_to_matrix``.
+    """
+    if not isinstance(convention, str) or len(convention) != 3 or any(c not in "XYZ" for c in convention):
+        raise ValueError(f"convention must be 3 letters from 'X', 'Y', 'Z', got {convention!r}")
+    euler_angles = _array(euler_angles)
+    m = [_axis_rotation(axis, euler_angles[..., i]) for i, axis in enumerate(convention)]
+    return m[0] @ m[1] @ m[2]
+
+
+def rotation_6d_to_matrix(d6):
+    """Rotation matrices (..., 3, 3) from the 6D representation (..., 6) (Zhou et al. 2019).
+
+    The two 3-vectors are orthonormalised (Gram-Schmidt) into the first two
+    rows; the third row is their cross product."""
+    d6 = _array(d6)
+    xp = _lib(d6)
+    a1, a2 = d6[..., :3], d6[..., 3:]
+    b1 = a1 / xp.maximum(_norm(a1), 1e-12)
+    a2 = a2 - (b1 * a2).sum(axis=-1, keepdims=True) * b1
+    b2 = a2 / xp.maximum(_norm(a2), 1e-12)
+    b3 = xp.linalg.cross(b1, b2) if xp is not np else np.cross(b1, b2)
+    return xp.stack([b1, b2, b3], axis=-2)
+
+
+def matrix_to_rotation_6d(mats):
+    """The 6D representation (..., 6): the first two rows of each matrix."""
+    mats = _array(mats)
+    return mats[..., :2, :].reshape(*mats.shape[:-2], 6)
+
+
+def random_quaternions(n: int, key=None):
+    """``n`` uniformly distributed unit quaternions (n, 4) with w >= 0, as an MLX array
+    (``mx.random`` with ``key``, or its global seed)."""
+    import mlx.core as mx
+
+    q = mx.random.normal((int(n), 4), key=key)
+    return standardize_quaternion(q / mx.linalg.norm(q, axis=-1, keepdims=True))
+
+
+def random_rotations(n: int, key=None):
+    """``n`` uniformly distributed rotation matrices (n, 3, 3), as an MLX array."""
+    return quaternion_to_matrix(random_quaternions(n, key))
 
 
 def euler_to_matrix(angles_deg) -> np.ndarray:
@@ -208,3 +378,12 @@ def covariances(quats, log_scales) -> np.ndarray:
     rot = quaternion_to_matrix(np.asarray(quats, dtype=np.float64))
     m = rot * np.exp(np.asarray(log_scales, dtype=np.float64))[:, None, :]
     return m @ np.swapaxes(m, -1, -2)
+
+
+# mlx3D's ``mlx3d.transforms.rotations`` module: the same functions under that name.
+rotations = types.ModuleType(__name__ + ".rotations", "Rotation conversions (mlx3D's module name); see mlx3d.transforms.")
+rotations.__all__ = list(ROTATION_NAMES)
+for _name in ROTATION_NAMES:
+    setattr(rotations, _name, globals()[_name])
+del _name
+sys.modules[rotations.__name__] = rotations

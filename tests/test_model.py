@@ -278,8 +278,12 @@ def test_save_load_round_trip_and_sh_degree_option(tmp_path):
     for k, v in np_params(m).items():
         np.testing.assert_array_equal(np.array(back.params[k]), v)
     np.testing.assert_array_equal(back.extra["id"], m.extra["id"])
-    assert GaussianModel.load_ply(tmp_path / "m.ply").sh_degree == 3  # API default pads to 3
-    assert GaussianModel.load_ply(tmp_path / "m.ply", sh_degree=1).sh_degree == 1
+    # the file's degree whatever sh_degree says (as mlx3D), all of it active
+    for kwargs in ({}, {"sh_degree": 3}, {"sh_degree": 1}):
+        loaded = GaussianModel.load_ply(tmp_path / "m.ply", **kwargs)
+        assert loaded.sh_degree == loaded.active_sh_degree == 2, kwargs
+    assert GaussianModel.load_ply(tmp_path / "m.ply").with_sh_degree(3).sh_degree == 3
+    assert GaussianModel.load_ply(tmp_path / "m.ply").with_sh_degree(1).sh_degree == 1
 
 
 def test_constructor_validates_shapes():

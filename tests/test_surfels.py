@@ -306,12 +306,12 @@ def test_apply_2dgs_constraints_clamps_only_the_third_scale():
         model.apply_2dgs_constraints(0.0)
 
 
-def sphere_model(n=2000, radius=1.0, seed=0, thin_axis=2):
-    """Discs tangent to a sphere; local axis ``thin_axis`` is the (outward, random-signed) normal."""
+def sphere_model(n=2000, radius=1.0, seed=0, thin_axis=2, random_signs=False):
+    """Discs tangent to a sphere; local axis ``thin_axis`` is the normal, outward (or of random sign)."""
     rng = np.random.default_rng(seed)
     normals = rng.normal(size=(n, 3))
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    signed = normals * rng.choice([-1.0, 1.0], size=(n, 1))
+    signed = normals * (rng.choice([-1.0, 1.0], size=(n, 1)) if random_signs else 1.0)
     rot = quaternion_to_matrix(quat_from_z_to(signed).astype(np.float64))
     quats = matrix_to_quaternion(np.roll(rot, thin_axis - 2, axis=2))  # a cyclic shift keeps det = +1
     scales = np.full((n, 3), 0.05)
@@ -325,45 +325,60 @@ def sphere_model(n=2000, radius=1.0, seed=0, thin_axis=2):
         "sh_dc": np.zeros((n, 1, 3), np.float32),
         "sh_rest": np.zeros((n, 0, 3), np.float32),
     }
-    return GaussianModel(params), normals
+    return GaussianModel(params), signed
 
 
 @pytest.mark.parametrize("thin_axis", [2, 0])
-def test_surfel_points_orients_the_thinnest_axis(thin_axis):
-    model, truth = sphere_model(thin_axis=thin_axis)
-    points, normals, weights, colors = model.surfel_points()
+def test_surfel_samples_keep_the_thinnest_axis_with_its_own_sign(thin_axis):
+    model, truth = sphere_model(thin_axis=thin_axis, random_signs=True)
+    points, normals, weights, colors = model.surfel_samples()
     assert points.shape == normals.shape == colors.shape == (2000, 3) and weights.shape == (2000,)
-    np.testing.assert_allclose(np.sum(normals * truth, axis=1), 1.0, atol=1e-5)  # outward from the centroid
+    np.testing.assert_allclose(np.sum(normals * truth, axis=1), 1.0, atol=1e-5)  # the rotation's own axis, sign kept
+    assert 0.3 < np.mean(np.sum(normals * points, axis=1) > 0) < 0.7  # about half face inward: no flip
     scales = np.exp(np.array(model.params["scales"], np.float64))
     discs = np.sort(scales, axis=1)[:, 1:].prod(axis=1)
     np.testing.assert_allclose(weights, math.pi * discs / (1 + math.exp(-2.0)), rtol=1e-5)
     np.testing.assert_allclose(colors, 0.5, atol=1e-6)
-    # towards cameras: one camera far out on +x flips the normals of the far side inwards
-    _, towards = model.surfel_points(orient_towards=[[10.0, 0, 0]])[:2]
-    np.testing.assert_allclose(np.sum(towards * (np.array([10.0, 0, 0]) - points), axis=1) > 0, True)
+    # towards a point far out on +x: every normal then faces it
+    _, towards = model.surfel_samples(orient_towards=[10.0, 0, 0])[:2]
+    assert (np.sum(towards * (np.array([10.0, 0, 0]) - points), axis=1) > 0).all()
+    # towards the nearest of several positions: outside on both sides of x = 0, every normal turns outward
+    _, outward = model.surfel_samples(orient_towards=[[10.0, 0, 0], [-10.0, 0, 0], [0, 10.0, 0], [0, -10.0, 0], [0, 0, 10.0], [0, 0, -10.0]])[:2]
+    np.testing.assert_allclose(np.sum(outward * points, axis=1), 1.0, atol=1e-5)
+    # normal_axis='z' reads local z whatever the scales say
+    _, z_normals, z_weights, _ = model.surfel_samples(normal_axis="z")
+    rot = quaternion_to_matrix(np.array(model.params["quats"], np.float64))
+    np.testing.assert_allclose(z_normals, rot[:, :, 2], atol=1e-6)
+    np.testing.assert_allclose(z_weights, math.pi * scales[:, 0] * scales[:, 1] / (1 + math.exp(-2.0)), rtol=1e-5)
 
 
-def test_surfel_points_filters_by_opacity_and_caps_by_disc_size():
+def test_surfel_samples_filter_by_opacity_and_cap_by_disc_size():
     model, _ = sphere_model(200)
     opac = np.full(200, 2.0, np.float32)
     opac[:50] = -6.0  # opacity 0.0025
     model.params["opacities"] = mx.array(opac)
-    points, *_ = model.surfel_points(min_opacity=0.01)
+    points, *_ = model.surfel_samples(min_opacity=0.01)
     assert len(points) == 150
-    capped, _, weights, _ = model.surfel_points(min_opacity=0.01, max_points=20)
-    all_points, _, all_weights, _ = model.surfel_points(min_opacity=0.01)
+    capped, _, weights, _ = model.surfel_samples(min_opacity=0.01, max_points=20)
+    all_points, _, all_weights, _ = model.surfel_samples(min_opacity=0.01)
     assert len(capped) == 20 and weights.min() >= np.sort(all_weights)[-20]
     order = [int(np.flatnonzero((all_points == p).all(1))[0]) for p in capped]
     assert order == sorted(order)  # kept rows stay in model order
-    with pytest.raises(ValueError, match="max_points"):
-        model.surfel_points(max_points=0)
-    with pytest.raises(ValueError, match="orient_towards"):
-        model.surfel_points(orient_towards=np.zeros((0, 3)))
+    assert len(model.surfel_samples(min_opacity=0.99)[0]) == 0  # no fallback row here: the mesher reports it
+    for method in (model.surfel_samples, model.surfel_points):
+        with pytest.raises(ValueError, match="max_points"):
+            method(max_points=0)
+        with pytest.raises(ValueError, match="orient_towards"):
+            method(orient_towards=np.zeros((0, 3)))
+        with pytest.raises(ValueError, match="orient_towards"):
+            method(orient_towards=np.zeros((4, 2)))
+    with pytest.raises(ValueError, match="normal_axis"):
+        model.surfel_samples(normal_axis="x")
 
 
-def test_extract_surface_mesh_from_surfels_on_a_sphere():
+def test_surface_mesh_from_surfels_on_a_sphere():
     model, _ = sphere_model(20_000, radius=2.0, seed=4)
-    mesh = model.extract_surface_mesh(resolution=96)
+    mesh = model.surface_mesh(resolution=96)
     assert mesh.is_watertight()
     assert mesh.area() == pytest.approx(4 * math.pi * 4.0, rel=0.02)
     assert mesh.volume() == pytest.approx(4 / 3 * math.pi * 8.0, rel=0.02)  # positive: faces point outward
@@ -371,17 +386,25 @@ def test_extract_surface_mesh_from_surfels_on_a_sphere():
     voxel = 4.0 * 1.2 / 96
     assert np.abs(radius - 2.0).max() < voxel
     np.testing.assert_allclose(mesh.colors, 0.5, atol=1e-5)
-    # oriented towards cameras inside the sphere, the surface turns inside out
-    inside = model.extract_surface_mesh(resolution=48, orient_towards=[[0.0, 0.0, 0.0]])
+    # oriented towards a camera inside the sphere, the surface turns inside out
+    inside = model.surface_mesh(resolution=48, orient_towards=[[0.0, 0.0, 0.0]])
     assert inside.volume() < 0
+    # extract_surface_mesh is the same mesh as a Meshes
+    meshes = model.extract_surface_mesh(resolution=48)
+    same = model.surface_mesh(resolution=48)
+    assert len(meshes) == 1
+    np.testing.assert_array_equal(np.array(meshes.verts_list()[0]), same.vertices)
+    np.testing.assert_array_equal(np.array(meshes.faces_list()[0]), same.faces)
+    np.testing.assert_array_equal(np.array(meshes.verts_colors_list()[0]), same.colors)
 
 
-def test_extract_surface_mesh_refuses_transparent_or_empty_models():
+def test_surface_mesh_refuses_transparent_or_empty_models():
     from mlx3d.meshing import MeshingError
 
     model, _ = sphere_model(100)
     model.params["opacities"] = mx.full((100,), -10.0)
-    with pytest.raises(MeshingError, match=r"no Gaussian has opacity >= 0.01 \(of 100\)"):
-        model.extract_surface_mesh()
+    for method in (model.surface_mesh, model.extract_surface_mesh):
+        with pytest.raises(MeshingError, match=r"no Gaussian has opacity >= 0.01 \(of 100\)"):
+            method()
     with pytest.raises(MeshingError, match="no Gaussian"):
-        model.select(np.zeros(100, bool)).extract_surface_mesh()
+        model.select(np.zeros(100, bool)).surface_mesh()
