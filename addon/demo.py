@@ -309,7 +309,7 @@ def run_demo(out_dir="demo_out", quick=False, progress=None, settings: DemoSetti
     trained, messages = train.train_dataset(
         dataset, steps=s.steps, method="vanilla", max_gaussians=s.max_gaussians, sh_degree=s.sh_degree,
         background=BACKGROUND, seed=s.seed, progress=_train_progress(write),
-        sh_degree_interval=max(1, s.steps // (s.sh_degree + 1)),
+        sh_increase_every=max(1, s.steps // (s.sh_degree + 1)),
     )
     log.stage("train", t)
     for message in messages:

@@ -210,7 +210,7 @@ def _planned_stages(scene, settings) -> tuple:
     if key not in _plan_cache:
         config = TrainerConfig(method=settings.train_method, steps=settings.train_steps)
         camera = camera_from_blender(scene.camera, scene) if scene.camera else Camera.look_at(eye=(0, -3, 1), at=(0, 0, 0), up=(0, 0, 1), width=64, height=64, fov=50.0)
-        step = min(settings.train_steps - 1, max(config.geometry_from, config.densify_from, config.sh_degree_interval * settings.train_sh_degree))
+        step = min(settings.train_steps - 1, max(config.geometry_from, config.densify_from, config.sh_increase_every * settings.train_sh_degree))
         plan = step_plan(config, camera, active_sh_degree(config, step, settings.train_sh_degree), step)
         _plan_cache.clear()
         _plan_cache[key] = (plan.stages, plan.skipped, step + 1)

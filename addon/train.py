@@ -116,7 +116,7 @@ class TrainSession:
     max_gaussians: cap on the number of Gaussians (None: no cap for vanilla and
     2dgs, ``mlx3d.training.initial.mcmc_budget`` for mcmc; initial points
     beyond it are subsampled, seeded); sh_degree: SH degree of the model (the
-    active degree grows every ``sh_degree_interval`` steps); background:
+    active degree grows every ``sh_increase_every`` steps); background:
     ``'black'``, ``'white'``, ``'random'`` or (r, g, b), the colour renders
     and targets are composited on; update_every: steps between refreshes of
     the scene object (0: only ``update_object()``/``finish()``); name: of the
@@ -125,8 +125,8 @@ class TrainSession:
     object goes (default: the active collection).
 
     trainer_overrides: further ``TrainerConfig`` fields, e.g.
-    ``densify_from=10, densify_every=20, grad_threshold=1e-7`` for a short run
-    in which densification fires, or ``sh_degree_interval``, learning rates,
+    ``densify_from=10, densify_every=20, densify_grad_threshold=1e-7`` for a short run
+    in which densification fires, or ``sh_increase_every``, learning rates,
     ``checkpoint_every``/``checkpoint_dir``.
 
     The constructor loads the dataset and builds the model and trainer without

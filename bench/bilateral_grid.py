@@ -166,7 +166,7 @@ def run(args) -> dict:
     trainers = {}
     for variant in VARIANTS:
         config = TrainerConfig(steps=30_000, bilateral_grid=variant != "plain", background=BACKGROUND, densify_from=10**9,
-                               sh_degree_interval=0)
+                               sh_increase_every=0)
         trainers[variant] = GaussianTrainer(make_model(), config, num_images=args.images)
     per_image = trainers["grid, per image"]
     calls = _PerImageCalls(per_image.bilateral, GridAdam(per_image.config.bilateral_grid_lr))

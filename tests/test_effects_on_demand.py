@@ -30,9 +30,9 @@ CASES = [
     (dict(antialias=True), "pinhole", 0, {"antialias_compensation"}, set()),
     (dict(projection="ut"), "pinhole", 0, {"project_ut"}, {"project_ewa"}),
     (dict(), "fisheye", 0, {"project_ut"}, {"project_ewa"}),
-    (dict(sh_degree_interval=1), "pinhole", 2, {"eval_sh_degree_2"}, {"eval_sh_degree_0"}),
+    (dict(sh_increase_every=1), "pinhole", 2, {"eval_sh_degree_2"}, {"eval_sh_degree_0"}),
     (dict(method="mcmc"), "pinhole", 0, {"loss_opacity_l1", "loss_scale_l1", "sgld_noise"}, {"thickness_clamp", "gaussian_normals"}),
-    (dict(method="mcmc", mcmc_opacity_reg=0.0, mcmc_noise_scale=0.0), "pinhole", 0, {"loss_scale_l1"}, {"loss_opacity_l1", "sgld_noise"}),
+    (dict(method="mcmc", mcmc_opacity_reg=0.0, mcmc_noise_lr=0.0), "pinhole", 0, {"loss_scale_l1"}, {"loss_opacity_l1", "sgld_noise"}),
     (dict(method="2dgs"), "pinhole", 0, {"thickness_clamp", "rasterize_rgb"}, {"gaussian_normals", "loss_depth_variance", "loss_normal_consistency"}),
     (dict(method="2dgs", geometry_from=0), "pinhole", 0,
      {"gaussian_normals", "rasterize_rgb+depth_planes+depth2+normals", "loss_depth_variance", "loss_normal_consistency"}, set()),
@@ -52,7 +52,7 @@ def test_a_step_runs_exactly_its_plan_and_nothing_unneeded(index):
     config = TrainerConfig(steps=100, **overrides)
     trainer = GaussianTrainer(model, config, scene_extent=3.0, num_images=1)
     trainer.step_count = done
-    trainer.active_sh_degree = min(done // config.sh_degree_interval, model.sh_degree)
+    trainer.active_sh_degree = min(done // config.sh_increase_every, model.sh_degree)
     plan = step_plan(config, cam, trainer.active_sh_degree, done)
     info = trainer.step(cam, target, image_index=0)
     assert info["stages"] == plan.stages

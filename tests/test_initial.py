@@ -137,7 +137,7 @@ def test_mcmc_grows_to_its_default_budget_on_schedule(tmp_path):
     assert mcmc_budget(900_000, 4000 * 3000) == 1_000_000
     cams = _ring(6, size=16)
     dataset = _dataset(cams, tmp_path, points=np.random.default_rng(1).uniform(-0.5, 0.5, (150, 3)).astype(np.float32))
-    config = TrainerConfig(method="mcmc", steps=80, densify_from=4, densify_every=4, init_background_points=0, sh_degree_interval=0)
+    config = TrainerConfig(method="mcmc", steps=80, densify_from=4, densify_every=4, init_background_points=0, sh_increase_every=0)
     start = initial_state(dataset, config)
     assert start.config.max_gaussians == 300 and any("MCMC budget: 300" in n for n in start.notes)
     trainer = GaussianTrainer(start.model, start.config, scene_extent=dataset.scene_extent())

@@ -129,7 +129,7 @@ def test_schedule_reaches_each_budget_and_cases_change_one_factor():
         s = schedule(steps, initial, budget)
         events = sum(1 for k in range(s["densify_from"] + 1, s["densify_until"] + 1) if k % s["densify_every"] == 0)
         assert events >= 1 and initial * (1 + s["mcmc_growth"]) ** events >= budget * 0.99
-        assert s["sh_degree_interval"] * 3 <= steps and s["opacity_reset_every"] == 0
+        assert s["sh_increase_every"] * 3 <= steps and s["opacity_reset_every"] == 0
     cases = train_cases(MODES["full"])
     base = cases[0]
     assert (base.method, base.budget, base.sh_degree, base.projection, base.antialias, base.scale) == ("mcmc", 30000, 3, "ewa", False, 1.0)

@@ -246,7 +246,7 @@ def test_2dgs_keeps_discs_thin_and_the_normal_regulariser_lays_them_on_the_surfa
     results = {}
     for lam in (0.0, 0.5):
         model, cams, targets = surfel_problem()
-        config = TrainerConfig(method="2dgs", steps=150, densify_from=10_000, geometry_from=0, lambda_2d_normal_consistency=lam, lambda_2d_depth_variance=0.0, quats_lr=1e-2)
+        config = TrainerConfig(method="2dgs", steps=150, densify_from=10_000, geometry_from=0, lambda_2d_normal_consistency=lam, lambda_2d_depth_variance=0.0, lr_quats=1e-2)
         trainer = GaussianTrainer(model, config, scene_extent=3.0)
         limit = config.two_d_thickness * 3.0
         assert np.exp(np.array(model.params["scales"])[:, 2]).max() <= limit * (1 + 1e-5)  # clamped from the start

@@ -157,10 +157,10 @@ def test_training_reduces_the_loss():
 
 def test_densification_fires_inside_training():
     model, cams, targets = small_problem(1)
-    config = TrainerConfig(steps=20, densify_from=2, densify_every=4, densify_until=20, opacity_reset_every=10, reset_recovery=5, grad_threshold=1e-7, sh_degree_interval=5)
+    config = TrainerConfig(steps=20, densify_from=2, densify_every=4, densify_until=20, opacity_reset_every=10, reset_recovery=5, densify_grad_threshold=1e-7, sh_increase_every=5)
     trainer = GaussianTrainer(model, config, scene_extent=3.0)
     infos = [trainer.step(cams[i % 6], targets[i % 6]) for i in range(12)]
-    assert [i["step"] for i in infos if "densify" in i] == [4, 8, 12]
+    assert [i["step"] for i in infos if i["densify"] is not None] == [4, 8, 12]
     assert [i["step"] for i in infos if "reset_opacity" in i] == [10]
     assert [i["sh_up"] for i in infos if "sh_up" in i] == [1, 1]  # capped at the model's degree
     assert infos[3]["num_gaussians"] > 60  # counted after the densification at step 4
@@ -182,7 +182,7 @@ def test_nan_guard_keeps_the_last_good_parameters():
 
 def test_checkpoint_resume_is_exact(tmp_path):
     model, cams, targets = small_problem(3)
-    config = TrainerConfig(steps=30, densify_from=4, densify_every=5, grad_threshold=1e-7, sh_degree_interval=4)
+    config = TrainerConfig(steps=30, densify_from=4, densify_every=5, densify_grad_threshold=1e-7, sh_increase_every=4)
     a = GaussianTrainer(model, config, scene_extent=3.0)
     for i in range(6):
         a.step(cams[i % 6], targets[i % 6])
@@ -391,7 +391,7 @@ def test_training_with_densification_is_deterministic():
     def run(threads):
         set_num_threads(threads)
         model, cams, targets = small_problem(3)
-        config = TrainerConfig(steps=40, densify_from=5, densify_every=10, grad_threshold=1e-6, max_gaussians=150)
+        config = TrainerConfig(steps=40, densify_from=5, densify_every=10, densify_grad_threshold=1e-6, max_gaussians=150)
         trainer = GaussianTrainer(model, config, scene_extent=3.0)
         for i in range(40):
             trainer.step(cams[i % 6], targets[i % 6])

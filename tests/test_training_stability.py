@@ -107,9 +107,9 @@ def write_dataset(root, cameras, images, points, colours):
 
 def config(method, **kw):
     base = dict(
-        method=method, steps=STEPS, seed=0, sh_degree_interval=50,
+        method=method, steps=STEPS, seed=0, sh_increase_every=50,
         densify_from=20, densify_every=20, densify_until=150, opacity_reset_every=RESET, reset_recovery=0, geometry_from=20,
-        grad_threshold=1e-4, max_gaussians=MAX_GAUSSIANS,
+        densify_grad_threshold=1e-4, max_gaussians=MAX_GAUSSIANS,
     )
     base.update(kw)
     return TrainerConfig(**base)

@@ -95,7 +95,7 @@ def outdoor(tmp_path_factory):
 
 
 def _held_out(dataset, method, **overrides):
-    config = TrainerConfig(method=method, steps=STEPS, sh_degree_interval=200, densify_from=100, densify_until=600, densify_every=50, **overrides)
+    config = TrainerConfig(method=method, steps=STEPS, sh_increase_every=200, densify_from=100, densify_until=600, densify_every=50, **overrides)
     start = initial_state(dataset, config, sh_degree=1)
     trainer = GaussianTrainer(start.model, start.config, scene_extent=dataset.scene_extent())
     trainer.fit(dataset)

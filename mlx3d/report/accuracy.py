@@ -218,7 +218,7 @@ def schedule(steps: int, initial: int, budget: int) -> dict:
     events = max(sum(1 for s in range(start + 1, until + 1) if s % every == 0), 1)
     growth = max((budget / max(initial, 1)) ** (1.0 / events) - 1.0, 0.05)
     return {
-        "sh_degree_interval": max(steps // 10, 1), "densify_from": start, "densify_until": until, "densify_every": every,
+        "sh_increase_every": max(steps // 10, 1), "densify_from": start, "densify_until": until, "densify_every": every,
         "opacity_reset_every": 0, "mcmc_growth": round(growth, 4),
     }
 
@@ -405,7 +405,7 @@ EFFECTS = (
     Effect("SH colour up to degree 3 (degree 0 when skipped)", "SH degree 3 (vs 0)", {}, {}, {"sh_degree": 3}, {"sh_degree": 0},
            degree_off=0),
     Effect("MCMC opacity and scale regularisers and SGLD noise", "MCMC regularisers and noise", {"method": "mcmc"},
-           {"method": "mcmc", "mcmc_opacity_reg": 0.0, "mcmc_scale_reg": 0.0, "mcmc_noise_scale": 0.0}),
+           {"method": "mcmc", "mcmc_opacity_reg": 0.0, "mcmc_scale_reg": 0.0, "mcmc_noise_lr": 0.0}),
     Effect("bilateral colour grid", "bilateral colour grid", {"bilateral_grid": True}, {}),
 )
 
@@ -413,7 +413,7 @@ EFFECTS = (
 def _effect_trainer(model, dataset, settings: dict, degree: int, seed: int):
     from ..training import GaussianTrainer, TrainerConfig
 
-    kw = dict(method="vanilla", steps=10**6, background=BACKGROUND, densify_from=10**9, sh_degree_interval=0, seed=seed)
+    kw = dict(method="vanilla", steps=10**6, background=BACKGROUND, densify_from=10**9, sh_increase_every=0, seed=seed)
     kw.update(settings)
     trainer = GaussianTrainer(model.copy(), TrainerConfig(**kw), scene_extent=dataset.scene_extent(), num_images=len(dataset.frames))
     trainer.active_sh_degree = degree
@@ -830,7 +830,7 @@ def _saved(saved: dict, on: dict, digits: int) -> str:
 
 
 def _schedule_text(s: dict) -> str:
-    return (f"SH degree up every {s['sh_degree_interval']:,} steps, density control (vanilla: clone/split/prune; MCMC: relocate and grow) "
+    return (f"SH degree up every {s['sh_increase_every']:,} steps, density control (vanilla: clone/split/prune; MCMC: relocate and grow) "
             f"every {s['densify_every']:,} steps from step {s['densify_from']:,} to {s['densify_until']:,}, no opacity reset, "
             f"MCMC growth to the budget by the last event (baseline: {s['mcmc_growth']:.1%} per event), other settings `TrainerConfig` defaults")
 

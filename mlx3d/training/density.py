@@ -227,14 +227,24 @@ def add_gaussians_mcmc(params: dict, optimizer=None, cap: int | None = None, gro
     return _apply_copies(grown, optimizer, sources, np.arange(n, n + add), min_opacity), add
 
 
-def sgld_noise(params: dict, lr_means: float, noise_scale: float = 5e5, rng=None) -> mx.array:
-    """MCMC position noise: N(0, Σ) scaled by ``noise_scale · lr_means`` and gated by
-    opacity with sigmoid(100 · ((1 - o) - 0.995)), so only near-transparent Gaussians move much."""
+def sgld_noise(params: dict, lr_means: float, noise_scale: float = 5e5, rng=None, isotropic: float = 0.0) -> mx.array:
+    """MCMC position noise, the means (N, 3) after it.
+
+    The paper's term: N(0, Σ) scaled by ``noise_scale · lr_means`` and gated by
+    opacity with sigmoid(100 · ((1 - o) - 0.995)), so only near-transparent
+    Gaussians move much. ``isotropic``: also N(0, isotropic² I) on every mean
+    (scene units; the original mlx3D's ``mcmc_noise_scale · extent · sqrt(lr_means)``).
+    """
     rng = rng or np.random.default_rng(0)
-    opacity = mx.sigmoid(params["opacities"])
-    gate = mx.sigmoid(100.0 * ((1.0 - opacity) - 0.995))
-    rot = quaternion_to_matrix(params["quats"])
-    std = mx.exp(params["scales"])
-    z = mx.array(rng.normal(size=tuple(params["means"].shape)).astype(np.float32))
-    noise = (rot @ ((std * std) * z)[..., None])[..., 0]  # Σ z with Σ = R S² Rᵀ, since Rᵀ z' ~ z for isotropic z
-    return params["means"] + noise * (gate * noise_scale * lr_means)[:, None]
+    means = params["means"]
+    if noise_scale > 0:
+        opacity = mx.sigmoid(params["opacities"])
+        gate = mx.sigmoid(100.0 * ((1.0 - opacity) - 0.995))
+        rot = quaternion_to_matrix(params["quats"])
+        std = mx.exp(params["scales"])
+        z = mx.array(rng.normal(size=tuple(means.shape)).astype(np.float32))
+        noise = (rot @ ((std * std) * z)[..., None])[..., 0]  # Σ z with Σ = R S² Rᵀ, since Rᵀ z' ~ z for isotropic z
+        means = means + noise * (gate * noise_scale * lr_means)[:, None]
+    if isotropic > 0:
+        means = means + mx.array(rng.normal(scale=isotropic, size=tuple(means.shape)).astype(np.float32))
+    return means

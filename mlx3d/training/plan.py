@@ -54,10 +54,10 @@ class StepPlan:
 
 
 def active_sh_degree(config, steps_done: int, max_degree: int) -> int:
-    """The SH degree a step evaluates after ``steps_done`` steps (raised every ``sh_degree_interval``, capped at ``max_degree``)."""
-    if not config.sh_degree_interval:
+    """The SH degree a step evaluates after ``steps_done`` steps (raised every ``sh_increase_every``, capped at ``max_degree``)."""
+    if not config.sh_increase_every:
         return max_degree
-    return min(steps_done // config.sh_degree_interval, max_degree)
+    return min(steps_done // config.sh_increase_every, max_degree)
 
 
 def step_plan(config, camera, sh_degree: int, step: int = 0, backend: str = "auto") -> StepPlan:
@@ -90,7 +90,7 @@ def step_plan(config, camera, sh_degree: int, step: int = 0, backend: str = "aut
     after = []
     if config.method == "2dgs":
         after.append("thickness_clamp")
-    if config.method == "mcmc" and config.mcmc_noise_scale > 0:
+    if config.method == "mcmc" and (config.mcmc_noise_lr > 0 or config.mcmc_noise_scale > 0):
         after.append("sgld_noise")
     return StepPlan(render, ("bilateral_grid",) if config.bilateral_grid else (), tuple(losses), tuple(after), events_at(config, step + 1))
 

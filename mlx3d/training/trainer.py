@@ -49,25 +49,27 @@ class TrainerConfig:
     method: str = "vanilla"  # 'vanilla' (adaptive density control) | 'mcmc' (3DGS as MCMC) | '2dgs' (surfels)
     steps: int = 30_000
     lambda_dssim: float = 0.2
-    background: object = "black"  # 'black' | 'white' | 'random' | (r, g, b)
+    background: object = None  # 'black' | 'white' | 'random' | (r, g, b); None: white_background's
+    white_background: bool = False  # background 'white' when `background` is not given
     antialias: bool = False
     projection: str = "auto"  # 'auto' | 'ewa' | 'ut'
-    sh_degree_interval: int = 1000  # raise the active SH degree every this many steps
-    # learning rates (means: initial and final, scaled by the scene extent, log-linear decay)
-    means_lr: float = 1.6e-4
-    means_lr_final: float = 1.6e-6
-    scales_lr: float = 5e-3
-    quats_lr: float = 1e-3
-    opacities_lr: float = 5e-2
-    sh_dc_lr: float = 2.5e-3
-    sh_rest_lr: float = 2.5e-3 / 20
+    sh_increase_every: int = 1000  # raise the active SH degree every this many steps
+    # learning rates (means: initial and final, scaled by the scene extent, log-linear decay over lr_means_max_steps)
+    lr_means: float = 1.6e-4
+    lr_means_final: float = 1.6e-6
+    lr_means_max_steps: int | None = None  # None: `steps`
+    lr_scales: float = 5e-3
+    lr_quats: float = 1e-3
+    lr_opacities: float = 5e-2
+    lr_sh_dc: float = 2.5e-3
+    lr_sh_rest: float = 2.5e-3 / 20
     # adaptive density control
     densify_from: int = 500
     densify_until: int | None = None  # None: 15,000 (vanilla, 2dgs, as 3DGS) or 25,000 (mcmc, as 3DGS-MCMC)
     densify_every: int = 100
     opacity_reset_every: int = 3000
     reset_recovery: int = 500  # no opacity reset in the last this many steps: the model needs them to recover
-    grad_threshold: float = 2e-4
+    densify_grad_threshold: float = 2e-4
     percent_dense: float = 0.01
     prune_opacity: float = 0.005
     max_screen_size: float = 20.0  # pixels, applied after the first opacity reset
@@ -84,14 +86,16 @@ class TrainerConfig:
     mcmc_relocate_frac: float = 1.0  # at most this fraction of N relocated per event
     mcmc_growth: float = 0.05  # growth per event (fraction of N) up to max_gaussians
     mcmc_jitter_scale: float = 0.0  # offset of relocated copies, in their standard deviations
-    mcmc_noise_scale: float = 5e5  # SGLD noise, times the means learning rate
+    mcmc_noise_lr: float = 5e5  # SGLD noise N(0, Σ) gated by opacity, times the means learning rate (the paper's)
+    mcmc_noise_scale: float = 0.0  # isotropic noise on every mean, std mcmc_noise_scale · extent · sqrt(means lr)
     mcmc_opacity_reg: float = 0.01
     mcmc_scale_reg: float = 0.01
     # per-image affine colour grid absorbing exposure/white-balance differences (off unless enabled)
     bilateral_grid: bool = False
     bilateral_grid_shape: tuple = (16, 16, 8)
     bilateral_grid_lr: float = 2e-3
-    bilateral_grid_warmup: int = 1000  # lr rises linearly from 1% over these steps, then decays to 1% at `steps`
+    bilateral_grid_warmup: int | None = None  # lr rises linearly from 1% over these steps, then decays to 1% at `steps`;
+    # None: steps / 30, at most 1,000 (gsplat's 1,000 of 30,000)
     lambda_bilateral_tv: float = 10.0
     # surfels and geometry regularisers (see mlx3d.training.geometry); None: the method's default
     two_d_thickness: float = 1e-3  # '2dgs': largest third scale, as a fraction of the scene extent
@@ -111,6 +115,12 @@ class TrainerConfig:
             raise ValueError(f"method {self.method!r} is not available; use one of {METHODS}")
         if self.steps < 1:
             raise ValueError(f"steps must be >= 1, got {self.steps}")
+        if self.background is None:
+            self.background = "white" if self.white_background else "black"
+        if self.lr_means_max_steps is not None and self.lr_means_max_steps < 1:
+            raise ValueError(f"lr_means_max_steps must be >= 1 (or None: steps), got {self.lr_means_max_steps}")
+        if self.mcmc_noise_lr < 0 or self.mcmc_noise_scale < 0:
+            raise ValueError(f"mcmc_noise_lr and mcmc_noise_scale must be >= 0, got {self.mcmc_noise_lr}, {self.mcmc_noise_scale}")
         surfels = self.method == "2dgs"
         mcmc = self.method == "mcmc"
         if self.densify_until is None:
@@ -141,7 +151,7 @@ def events_at(config: TrainerConfig, step: int) -> tuple:
     """Schedule events after step ``step`` (1-based): 'sh_up', and 'densify' and
     'reset_opacity' (vanilla) or 'relocate' and 'grow' (mcmc)."""
     events = []
-    if config.sh_degree_interval and step % config.sh_degree_interval == 0:
+    if config.sh_increase_every and step % config.sh_increase_every == 0:
         events.append("sh_up")
     if config.densify_from < step <= config.densify_until:
         if config.method == "mcmc":
@@ -190,7 +200,8 @@ class GaussianTrainer:
         from .bilateral_grid import BilateralGrid, GridAdam, warmup_decay
 
         self.bilateral = BilateralGrid(num_images, self.config.bilateral_grid_shape)
-        schedule = warmup_decay(max(self.config.steps, 1), self.config.bilateral_grid_warmup)
+        warmup = self.config.bilateral_grid_warmup
+        schedule = warmup_decay(self.config.steps, min(self.config.steps // 30, 1000) if warmup is None else warmup)
         self.grid_optimizer = GridAdam(self.config.bilateral_grid_lr, schedule=schedule)  # updates only the stepped image's grid
 
     @property
@@ -202,15 +213,15 @@ class GaussianTrainer:
     def learning_rates(self) -> dict:
         """Per-parameter learning rates at the current step."""
         c = self.config
-        t = min(self.step_count / max(c.steps, 1), 1.0)
-        means_lr = math.exp((1 - t) * math.log(c.means_lr) + t * math.log(c.means_lr_final)) * self.scene_extent
+        t = min(self.step_count / (c.lr_means_max_steps or c.steps), 1.0)
+        lr_means = math.exp((1 - t) * math.log(c.lr_means) + t * math.log(c.lr_means_final)) * self.scene_extent
         return {
-            "means": means_lr,
-            "scales": c.scales_lr,
-            "quats": c.quats_lr,
-            "opacities": c.opacities_lr,
-            "sh_dc": c.sh_dc_lr,
-            "sh_rest": c.sh_rest_lr,
+            "means": lr_means,
+            "scales": c.lr_scales,
+            "quats": c.lr_quats,
+            "opacities": c.lr_opacities,
+            "sh_dc": c.lr_sh_dc,
+            "sh_rest": c.lr_sh_rest,
         }
 
     def _reset_stats(self):
@@ -302,7 +313,9 @@ class GaussianTrainer:
             self.model.apply_2dgs_constraints(self.max_thickness)
             ran.append("thickness_clamp")
         if "sgld_noise" in plan.after_step:
-            self.model.params["means"] = sgld_noise(self.model.params, self.optimizer.lrs["means"], c.mcmc_noise_scale, self.rng)
+            lr = self.optimizer.lrs["means"]
+            isotropic = c.mcmc_noise_scale * self.scene_extent * math.sqrt(max(lr, 0.0))
+            self.model.params["means"] = sgld_noise(self.model.params, lr, c.mcmc_noise_lr, self.rng, isotropic)
             ran.append("sgld_noise")
         self.step_count += 1
 
@@ -322,16 +335,25 @@ class GaussianTrainer:
             ran.append(event)
         info["num_gaussians"] = len(self.model)  # after this step's density control
         info["stages"] = tuple(ran)
+        # the original mlx3D's keys
+        info.update({
+            "method": c.method, "active_sh_degree": self.active_sh_degree, "lr_means": self.learning_rates()["means"],
+            "densify": info["densify"] if "densify" in info else (
+                {"relocated": info["relocate"], "added": info.get("grow", 0)} if "relocate" in info else None),
+            "opacity_reset": "reset_opacity" in plan.events, "sh_degree_changed": "sh_up" in plan.events,
+            "geometry": {"depth_variance": info.get("depth_variance_loss", 0.0), "normal_consistency": info.get("normal_loss", 0.0)},
+        })
         return info
 
     def _apply_event(self, event: str):
         c = self.config
         if event == "sh_up":
             self.active_sh_degree = min(self.active_sh_degree + 1, self.model.sh_degree)
+            self.model.active_sh_degree = self.active_sh_degree  # where the original mlx3D keeps it
             return self.active_sh_degree
         if event == "densify":
             params, counts = densify_and_prune(
-                self.model.params, self.grad_accum, self.grad_count, c.grad_threshold, self.scene_extent, c.percent_dense,
+                self.model.params, self.grad_accum, self.grad_count, c.densify_grad_threshold, self.scene_extent, c.percent_dense,
                 c.prune_opacity, self.optimizer, c.max_screen_size if self.opacity_resets else None, self.max_radii,
                 c.max_gaussians, self.rng,
             )

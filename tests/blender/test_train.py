@@ -27,7 +27,7 @@ pytest.importorskip("PIL", reason="mlx3d.datasets decodes images with Pillow")
 
 NUM_POINTS = 2000
 # Densification fires in a short run: every 20 steps from step 20 on, with any screen-space gradient.
-DENSIFY_SOON = dict(densify_from=10, densify_every=20, grad_threshold=1e-7)
+DENSIFY_SOON = dict(densify_from=10, densify_every=20, densify_grad_threshold=1e-7)
 
 
 def build_scene():
