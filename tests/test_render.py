@@ -180,11 +180,11 @@ def test_degenerate_2d_covariance_is_culled():
     s["scales"][:] = [0.1, 0.0, 0.0]  # a line: rank-1 2D covariance, det == 0 without blur
     args = [mx.array(s[k]) for k in ("means", "quats", "scales")]
     out = project_gaussians(cam, *args, blur=0.0)
-    assert (np.array(out.radii) == 0).all()
-    assert np.isfinite(np.array(out.conics)).all()
+    assert (np.array(out["radii"]) == 0).all()
+    assert np.isfinite(np.array(out["conics"])).all()
     s["scales"][:] = 1e-4  # tiny: a negative blur makes the covariance negative definite (det > 0, a < 0)
     out = project_gaussians(cam, *[mx.array(s[k]) for k in ("means", "quats", "scales")], blur=-10.0)
-    assert (np.array(out.radii) == 0).all()
+    assert (np.array(out["radii"]) == 0).all()
     check_case(cam, scene(3, seed=9, spread=0.2) | {"scales": np.tile(np.float32([0.1, 0.0, 0.0]), (3, 1))})
 
 
@@ -223,10 +223,10 @@ def test_ewa_matches_oracle_projection():
     proj = project_gaussians(cam, mx.array(s["means"]), mx.array(s["quats"]), mx.array(s["scales"]))
     for i in range(30):
         m2, conic, r, z = render_oracle.project_one(cam, s["means"][i].astype(np.float64), s["quats"][i], s["scales"][i])
-        assert int(np.array(proj.radii)[i]) == r
+        assert int(np.array(proj["radii"])[i]) == r
         if r:
-            np.testing.assert_allclose(np.array(proj.means2d)[i], m2, rtol=1e-5, atol=1e-4)
-            np.testing.assert_allclose(np.array(proj.conics)[i], conic, rtol=1e-4, atol=1e-6)
+            np.testing.assert_allclose(np.array(proj["means2d"])[i], m2, rtol=1e-5, atol=1e-4)
+            np.testing.assert_allclose(np.array(proj["conics"])[i], conic, rtol=1e-4, atol=1e-6)
 
 
 def test_ut_equals_ewa_for_small_gaussians_and_is_exact_for_orthographic():
@@ -235,10 +235,10 @@ def test_ut_equals_ewa_for_small_gaussians_and_is_exact_for_orthographic():
     s["scales"][:] = 0.01
     args = [mx.array(s[k]) for k in ("means", "quats", "scales")]
     ewa, ut = project_gaussians(cam, *args), project_gaussians_ut(cam, *args)
-    np.testing.assert_allclose(np.array(ut.means2d), np.array(ewa.means2d), atol=1e-4)
-    ewa_conics = np.array(ewa.conics)
+    np.testing.assert_allclose(np.array(ut["means2d"]), np.array(ewa["means2d"]), atol=1e-4)
+    ewa_conics = np.array(ewa["conics"])
     scale = np.abs(ewa_conics).max(axis=1, keepdims=True)
-    assert (np.abs(np.array(ut.conics) - ewa_conics) <= 2e-3 * scale).all()
+    assert (np.abs(np.array(ut["conics"]) - ewa_conics) <= 2e-3 * scale).all()
     ortho = Camera(width=48, height=40, fx=20.0, fy=20.0, cx=24.0, cy=20.0, viewmat=cam.viewmat, model="orthographic")
     proj = project_gaussians_ut(ortho, *args)
     rot = np.asarray(cam.viewmat)[:3, :3]
@@ -246,7 +246,7 @@ def test_ut_equals_ewa_for_small_gaussians_and_is_exact_for_orthographic():
         m = render_oracle.quat_to_rot(s["quats"][i]) @ np.diag(s["scales"][i].astype(np.float64))
         cov = (rot @ m @ m.T @ rot.T)[:2, :2] * 400.0 + 0.3 * np.eye(2)
         want = np.array([cov[1, 1], -cov[0, 1], cov[0, 0]]) / np.linalg.det(cov)
-        np.testing.assert_allclose(np.array(proj.conics)[i], want, rtol=1e-4, atol=1e-5 * np.abs(want).max())
+        np.testing.assert_allclose(np.array(proj["conics"])[i], want, rtol=1e-4, atol=1e-5 * np.abs(want).max())
 
 
 def test_antialias_compensation():
@@ -254,8 +254,8 @@ def test_antialias_compensation():
     s = scene(10, seed=14)
     args = [mx.array(s[k]) for k in ("means", "quats", "scales")]
     plain, aa = project_gaussians(cam, *args), project_gaussians(cam, *args, antialias=True)
-    comp = np.array(aa.compensation)[np.array(aa.radii) > 0]
-    assert ((comp > 0) & (comp <= 1)).all() and (np.array(plain.compensation)[np.array(plain.radii) > 0] == 1).all()
+    comp = np.array(aa["compensation"])[np.array(aa["radii"]) > 0]
+    assert ((comp > 0) & (comp <= 1)).all() and (np.array(plain["compensation"])[np.array(plain["radii"]) > 0] == 1).all()
 
 
 # ------------------------------------------------------------------ effects on demand
@@ -298,11 +298,11 @@ def test_depth_and_features():
     one["scales"][:] = 0.3
     one["opacities"][:] = 0.9
     s = as_mx(one)
-    depth = np.array(render_gaussian_depth(cam, s["means"], s["quats"], s["scales"], s["opacities"], backend="reference"))
+    depth = np.array(render_gaussian_depth(cam, s["means"], s["quats"], s["scales"], s["opacities"], backend="reference")["depth"])
     hit = depth > 0
     assert hit.any() and np.allclose(depth[hit], 4.0, atol=1e-4)  # camera 4 units away
     feats = mx.array(np.arange(20, dtype=np.float32)[None, :])
-    img = np.array(render_gaussian_features(cam, s["means"], s["quats"], s["scales"], s["opacities"], feats, normalize=True, chunk_size=7, backend="reference"))
+    img = np.array(render_gaussian_features(cam, s["means"], s["quats"], s["scales"], s["opacities"], feats, normalize=True, chunk_size=7, backend="reference")["features"])
     assert img.shape == (40, 48, 20)
     covered = img[..., 0] >= 0
     np.testing.assert_allclose(img[hit][:, 5], 5.0, rtol=1e-5)

@@ -5,7 +5,7 @@ import pytest
 
 import mlx.core as mx
 
-from mlx3d.render import bin_gaussians
+from mlx3d.render import bin_tiles
 from mlx3d.render.binning import tile_extents
 from mlx3d.render.raster_cpu import rasterize_cpu
 
@@ -35,7 +35,7 @@ def test_bins_match_brute_force(seed, width, height, tile):
     radii = rng.integers(0, 25, n)
     depths = rng.uniform(0.1, 10, n)
     depths[:10] = depths[10]  # ties sort by Gaussian index
-    bins = bin_gaussians(means2d, radii, depths, width, height, tile)
+    bins = bin_tiles(means2d, radii, depths, width, height, tile)
     offsets, ids = brute_bins(means2d, radii, depths, width, height, tile)
     np.testing.assert_array_equal(np.array(bins.tile_offsets), offsets)
     np.testing.assert_array_equal(np.array(bins.flatten_ids), ids)
@@ -43,15 +43,15 @@ def test_bins_match_brute_force(seed, width, height, tile):
 
 
 def test_empty_and_all_culled():
-    bins = bin_gaussians(np.zeros((5, 2)), np.zeros(5), np.ones(5), 40, 30)
+    bins = bin_tiles(np.zeros((5, 2)), np.zeros(5), np.ones(5), 40, 30)
     assert np.array(bins.tile_offsets).tolist() == [0] * 7 and bins.flatten_ids.size == 0
-    bins = bin_gaussians(np.zeros((0, 2)), np.zeros(0), np.zeros(0), 40, 30)
+    bins = bin_tiles(np.zeros((0, 2)), np.zeros(0), np.zeros(0), 40, 30)
     assert bins.flatten_ids.size == 0
 
 
 def test_bad_tile_size():
     with pytest.raises(ValueError, match="tile_size"):
-        bin_gaussians(np.zeros((1, 2)), np.ones(1), np.ones(1), 8, 8, tile_size=0)
+        bin_tiles(np.zeros((1, 2)), np.ones(1), np.ones(1), 8, 8, tile_size=0)
 
 
 def test_opacity_aware_extents_change_no_pixel():
@@ -72,8 +72,8 @@ def test_opacity_aware_extents_change_no_pixel():
     opac[:20] = 0.003
     depths = rng.uniform(1, 5, n)
     colors = mx.array(rng.uniform(0, 1, (n, 3)).astype(np.float32))
-    loose = bin_gaussians(means2d, radii, depths, width, height)
-    tight = bin_gaussians(means2d, radii, depths, width, height, conics=conics, opacities=opac)
+    loose = bin_tiles(means2d, radii, depths, width, height)
+    tight = bin_tiles(means2d, radii, depths, width, height, conics=conics, opacities=opac)
     assert tight.flatten_ids.size < loose.flatten_ids.size
     assert not np.isin(np.arange(20), np.array(tight.flatten_ids)).any()
     a = rasterize_cpu(means2d, conics, colors, mx.array(opac), loose.tile_offsets, loose.flatten_ids, width, height)

@@ -367,7 +367,7 @@ def run_case(case: Case) -> dict:
 
     # ---- gradients: finite; exactly zero for culled Gaussians and for those reaching no pixel
     project = project_gaussians_ut if out["plan"].projection == "ut" else project_gaussians
-    comp = np.array(project(cam, *case.inputs()[:3], antialias=case.antialias).compensation)
+    comp = np.array(project(cam, *case.inputs()[:3], antialias=case.antialias)["compensation"])
     peak = _footprint_peak(cam, get["means2d"], get["conics"], case.opacities * comp)
     unseen = visible & (peak < ALPHA_MIN * (1 - 1e-3))
     for name, g in grads.items():
@@ -493,7 +493,7 @@ def test_conic_gradient_of_a_very_wide_gaussian(projection):
     w = mx.array([[1.0, 0.3, 2.0]])
 
     def grad_at(s):
-        return np.array(mx.grad(lambda sc: (projection(cam, means, quats, sc, blur=0.0).conics * w).sum())(mx.array(s, dtype=mx.float32)))
+        return np.array(mx.grad(lambda sc: (projection(cam, means, quats, sc, blur=0.0)["conics"] * w).sum())(mx.array(s, dtype=mx.float32)))
 
     s = np.array([[0.01, 0.005, 0.002]])
     small, wide = grad_at(s), grad_at(1e5 * s)
@@ -507,7 +507,7 @@ def test_antialias_compensation_gradient_of_a_very_wide_gaussian():
     means, quats = mx.array([[0.01, -0.02, 1.0]]), mx.array([[1.0, 0.1, 0.2, 0.3]])
 
     def comp(sc):
-        return project_gaussians_ut(cam, means, quats, sc, antialias=True).compensation.sum()
+        return project_gaussians_ut(cam, means, quats, sc, antialias=True)["compensation"].sum()
 
     scales = mx.array([[3e4, 1e4, 2e4]])
     assert float(comp(scales)) == pytest.approx(1.0)

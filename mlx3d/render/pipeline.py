@@ -11,56 +11,40 @@ the same rasterization pass as the colour.
 
 All inputs are activated values: scales are standard deviations, opacities in
 [0, 1], quaternions any length (normalised inside).
+
+The render functions keep the original mlx3D signatures (positional order and
+defaults, except ``projection='auto'``, which is EWA for every camera EWA can
+represent) and dict results; our options are keyword-only and our extra
+results are extra keys.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import mlx.core as mx
+import numpy as np
 
-from ..splatting.sh import eval_sh, sh_degree_from_bases
+from ..splatting.sh import MAX_SH_DEGREE, eval_sh
 from . import geometry_channels
-from .binning import TILE_SIZE, bin_gaussians
-from .projection import project_gaussians, project_gaussians_ut
+from .binning import TILE_SIZE, Bins, bin_tiles
+from .projection import project_ewa, project_ut
+from .rasterize import BACKENDS, CHUNK_SIZE, composite, composite_features, resolve_backend
 
-BACKENDS = ("auto", "cpu", "metal", "reference")
 PROJECTIONS = ("auto", "ewa", "ut")
 
-
-def resolve_backend(backend: str) -> str:
-    """'auto' -> 'metal' on Apple GPUs, else 'cpu' (the C++ kernel)."""
-    if backend not in BACKENDS:
-        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
-    if backend == "auto":
-        from .raster_metal import metal_available
-
-        return "metal" if metal_available() else "cpu"
-    return backend
-
-
-def rasterize_features(means2d, conics, features, opacities, bins, width: int, height: int, background=None, backend: str = "auto"):
-    """Composite (N,C) features of projected, binned Gaussians into (image (H,W,C), alpha (H,W)).
-
-    background: None (black) or (C,) added where the image is not opaque.
-    """
-    backend = resolve_backend(backend)
-    args = (means2d, conics, features, opacities, bins.tile_offsets, bins.flatten_ids, width, height, bins.tile_size)
-    if backend == "reference":
-        from .raster_reference import rasterize_reference
-
-        accum, alpha = rasterize_reference(*args)
-    elif backend == "cpu":
-        from .raster_cpu import rasterize_cpu
-
-        accum, alpha, _ = rasterize_cpu(*args)
-    else:
-        from .raster_metal import rasterize_metal
-
-        accum, alpha, _ = rasterize_metal(*args)
-    if background is not None:
-        accum = accum + (1.0 - alpha)[..., None] * mx.array(background, dtype=mx.float32)
-    return accum, alpha
+__all__ = [
+    "BACKENDS",
+    "PROJECTIONS",
+    "RenderPlan",
+    "plan_render",
+    "render_gaussian_depth",
+    "render_gaussian_features",
+    "render_gaussians",
+    "render_gaussians_reference",
+    "resolve_backend",
+]
 
 
 @dataclass(frozen=True)
@@ -103,39 +87,68 @@ class RenderPlan:
         return tuple(out)
 
 
+def _projection_method(camera, projection: str) -> str:
+    """'ewa' or 'ut' for ``projection`` ('auto': UT only where EWA cannot represent the camera)."""
+    if projection not in PROJECTIONS:
+        raise ValueError(f"projection must be one of {PROJECTIONS}, got {projection!r}")
+    if projection == "ewa" and camera.needs_ut:
+        raise ValueError(f"a {camera.model!r} camera needs projection='ut' (EWA assumes an undistorted pinhole camera)")
+    return "ut" if projection == "ut" or (projection == "auto" and camera.needs_ut) else "ewa"
+
+
+def _sh_degree_present(num_bases: int) -> int:
+    """Highest SH degree whose (degree+1)² coefficients fit in ``num_bases`` (at most 3)."""
+    if num_bases < 1:
+        raise ValueError(f"sh must have at least one coefficient per channel, got K={num_bases}")
+    return min(MAX_SH_DEGREE, math.isqrt(int(num_bases)) - 1)
+
+
 def plan_render(
     camera, colors=None, sh=None, sh_degree: int = 3, projection: str = "auto", antialias: bool = False, render_depth: bool = False,
     backend: str = "auto", render_depth_variance: bool = False, render_normals: bool = False, planar_depth: bool = False,
 ) -> RenderPlan:
     """Decide the stages for a render (see the module docstring); raises ValueError for conflicts."""
-    if projection not in PROJECTIONS:
-        raise ValueError(f"projection must be one of {PROJECTIONS}, got {projection!r}")
-    if projection == "ewa" and camera.needs_ut:
-        raise ValueError(f"a {camera.model!r} camera needs projection='ut' (EWA assumes an undistorted pinhole camera)")
-    method = "ut" if projection == "ut" or (projection == "auto" and camera.needs_ut) else "ewa"
+    method = _projection_method(camera, projection)
     if (colors is None) == (sh is None):
         raise ValueError("pass exactly one of colors=(N,3) or sh=(N,K,3)")
     degree = None
     if sh is not None:
-        degree = min(int(sh_degree), sh_degree_from_bases(sh.shape[1]))
+        degree = min(int(sh_degree), _sh_degree_present(sh.shape[1]))
     variance = bool(render_depth_variance)
     depth = bool(render_depth) or variance
     return RenderPlan(method, degree, depth, bool(antialias), resolve_backend(backend), variance, bool(render_normals), bool(planar_depth) and depth)
 
 
-def _project_and_bin(camera, means, quats, scales, opacities, plan: RenderPlan, blur, tile_size, ran=None):
-    """Projection (EWA or UT per ``plan``), antialias compensation, tile binning."""
-    ran = [] if ran is None else ran
-    project = project_gaussians_ut if plan.projection == "ut" else project_gaussians
-    proj = project(camera, means, quats, scales, blur=blur, antialias=plan.antialias)
-    ran.append(f"project_{plan.projection}")
-    opac = opacities
-    if plan.antialias:
-        opac = opacities * proj.compensation
+def _project(camera, means, quats, scales, opacities, method: str, antialias: bool, blur, ran: list):
+    """Projection ('ewa' or 'ut') and the opacities it leaves (times the antialias compensation)."""
+    project = project_ut if method == "ut" else project_ewa
+    proj = project(camera, means, quats, scales, blur=blur, antialias=antialias)
+    ran.append(f"project_{method}")
+    if antialias:
+        opacities = opacities * proj.compensation
         ran.append("antialias_compensation")
-    bins = bin_gaussians(proj.means2d, proj.radii, proj.depths, camera.width, camera.height, tile_size, proj.conics, opac)
+    return proj, opacities
+
+
+def _project_and_bin(camera, means, quats, scales, opacities, method: str, antialias: bool, blur, tile_size, ran=None):
+    """Projection, antialias compensation, tile binning (extents tightened by the opacities)."""
+    ran = [] if ran is None else ran
+    proj, opac = _project(camera, means, quats, scales, opacities, method, antialias, blur, ran)
+    bins = bin_tiles(proj.means2d, proj.radii, proj.depths, camera.width, camera.height, tile_size, proj.conics, opac)
     ran.append("bin_tiles")
     return proj, opac, bins
+
+
+def _projection_outputs(proj) -> dict:
+    """The per-Gaussian entries of every render result."""
+    return {
+        "means2d": proj.means2d,
+        "conics": proj.conics,
+        "depths": proj.depths,
+        "radii": proj.radii.astype(mx.float32),
+        "compensation": proj.compensation,
+        "visible": proj.radii > 0,
+    }
 
 
 def render_gaussians(
@@ -148,8 +161,10 @@ def render_gaussians(
     sh=None,
     sh_degree: int = 3,
     background=None,
+    refine_tiles: bool = False,
     antialias: bool = False,
     projection: str = "auto",
+    *,
     render_depth: bool = False,
     backend: str = "auto",
     blur: float = 0.3,
@@ -162,13 +177,23 @@ def render_gaussians(
 ) -> dict:
     """Render Gaussians from ``camera``; differentiable w.r.t. every float input.
 
-    means (N,3), quats (N,4) w,x,y,z, scales (N,3) std-devs, opacities (N,) in
-    [0,1]; colour from ``colors`` (N,3) or SH ``sh`` (N,K,3) evaluated up to
-    ``sh_degree`` (clamped at 0 as in 3DGS). background: (3,) or None (black).
-    Returns a dict: ``image`` (H,W,3), ``alpha`` (H,W), ``means2d`` (N,2),
-    ``conics``, ``radii`` (N,) int32, ``depths`` (N,), ``visible`` (N,) bool,
-    ``plan`` and ``stages`` (what ran), and the geometry asked for, each 0
-    where nothing is hit:
+    The original mlx3D signature: means (N,3), quats (N,4) w,x,y,z, scales
+    (N,3) std-devs, opacities (N,) in [0,1]; colour from ``colors`` (N,3) or
+    SH ``sh`` (N,K,3) evaluated toward the camera up to ``sh_degree`` (and at
+    most the degree K holds), clamped at 0 as in 3DGS; background: (3,) or
+    None (black); refine_tiles: accepted for compatibility and changes
+    nothing (the binning always drops the tiles a Gaussian cannot reach with
+    alpha >= 1/255, which leaves the image unchanged); antialias:
+    Mip-Splatting opacity compensation; projection: 'ewa', 'ut' or 'auto'
+    (the default; EWA for pinhole cameras, as the original's 'ewa', and the
+    unscented transform for distorted, fisheye and orthographic cameras,
+    which EWA cannot represent; 'ewa' with such a camera raises ValueError).
+
+    Returns a dict: ``image`` (H,W,3), ``alpha`` (H,W), ``final_T`` (H,W) =
+    1 - alpha, ``n_contrib`` (H,W) int32, ``means2d`` (N,2), ``conics``
+    (N,3), ``depths`` (N,), ``radii`` (N,) float32 (0 = culled),
+    ``compensation`` (N,), ``visible`` (N,) bool, ``plan`` and ``stages``
+    (what ran), and the geometry asked for, each 0 where nothing is hit:
 
     - ``render_depth``: ``depth`` (H,W), the alpha-normalised expected camera z;
     - ``render_depth_variance``: also ``depth_variance`` (H,W), the
@@ -181,13 +206,16 @@ def render_gaussians(
     - ``planar_depth``: the depth of each Gaussian's plane (a surfel's) instead
       of its centre, see ``geometry_channels``.
 
-    means2d_offset: optional (N,2) added to the projected 2D means. Pass zeros
-    and differentiate w.r.t. it to get dL/d(means2d), the screen-space
+    Keyword-only additions: the geometry options above, ``backend`` ('auto',
+    'cpu', 'metal', 'reference'), ``blur`` (pixels², 0.3), ``tile_size`` and
+    ``means2d_offset``: optional (N,2) added to the projected 2D means. Pass
+    zeros and differentiate w.r.t. it to get dL/d(means2d), the screen-space
     gradient that density control accumulates.
     """
+    del refine_tiles  # see the docstring
     plan = plan_render(camera, colors, sh, sh_degree, projection, antialias, render_depth, backend, render_depth_variance, render_normals, planar_depth)
     ran = []
-    proj, opac, bins = _project_and_bin(camera, means, quats, scales, opacities, plan, blur, tile_size, ran)
+    proj, opac, bins = _project_and_bin(camera, means, quats, scales, opacities, plan.projection, plan.antialias, blur, tile_size, ran)
     if plan.sh_degree is not None:
         centre = mx.array(camera.center, dtype=mx.float32)
         rgb = mx.maximum(eval_sh(plan.sh_degree, sh, means - centre), 0.0)
@@ -206,27 +234,13 @@ def render_gaussians(
         bg = mx.array(background, dtype=mx.float32)
         if features.shape[1] > 3:
             bg = mx.concatenate([bg, mx.zeros((features.shape[1] - 3,))])
-    accum, alpha = rasterize_features(means2d, proj.conics, features, opac, bins, camera.width, camera.height, bg, plan.backend)
+    accum, alpha, last = composite(means2d, proj.conics, features, opac, bins, camera.width, camera.height, bg, plan.backend)
     ran.append("rasterize_" + "+".join(plan.channels))
-    out = {
-        "image": accum[..., :3],
-        "alpha": alpha,
-        "means2d": proj.means2d,
-        "conics": proj.conics,
-        "radii": proj.radii,
-        "depths": proj.depths,
-        "visible": proj.radii > 0,
-        "plan": plan,
-        "stages": tuple(ran),
-    }
+    out = {"image": accum[..., :3], "alpha": alpha, "final_T": 1.0 - alpha, "n_contrib": last}
+    out.update(_projection_outputs(proj))
+    out.update({"plan": plan, "stages": tuple(ran)})
     out.update(geometry_channels.unpack(plan, camera, accum, alpha, depth_reference))
     return out
-
-
-def render_gaussian_depth(camera, means, quats, scales, opacities, **kwargs) -> mx.array:
-    """(H,W) expected depth (camera z, 0 where nothing is hit)."""
-    n = means.shape[0]
-    return render_gaussians(camera, means, quats, scales, opacities, colors=mx.zeros((n, 3)), render_depth=True, **kwargs)["depth"]
 
 
 def render_gaussian_features(
@@ -238,24 +252,92 @@ def render_gaussian_features(
     features,
     background=None,
     normalize: bool = False,
+    refine_tiles: bool = False,
     antialias: bool = False,
     projection: str = "auto",
+    *,
     backend: str = "auto",
     blur: float = 0.3,
     tile_size: int = TILE_SIZE,
-    chunk_size: int = 16,
-) -> mx.array:
-    """(H,W,F) arbitrary per-Gaussian features (N,F), rasterized ``chunk_size``
-    channels per pass (one projection and binning for all); ``normalize``
-    divides by alpha (a weighted mean instead of a weighted sum)."""
-    plan = plan_render(camera, colors=features, projection=projection, antialias=antialias, backend=backend)
-    proj, opac, bins = _project_and_bin(camera, means, quats, scales, opacities, plan, blur, tile_size)
-    parts, alpha = [], None
-    for start in range(0, features.shape[1], chunk_size):
-        bg = None if background is None else mx.array(background, dtype=mx.float32)[start : start + chunk_size]
-        accum, alpha = rasterize_features(proj.means2d, proj.conics, features[:, start : start + chunk_size], opac, bins, camera.width, camera.height, bg, plan.backend)
-        parts.append(accum)
-    image = mx.concatenate(parts, axis=-1)
-    if normalize:
-        image = mx.where(alpha[..., None] > 0, image / mx.maximum(alpha[..., None], 1e-10), 0.0)
-    return image
+    chunk_size: int = CHUNK_SIZE,
+) -> dict:
+    """Render arbitrary per-Gaussian features (N,C) with one projection and binning.
+
+    background: None, a scalar or (C,) (ignored with ``normalize``);
+    normalize: the alpha-weighted mean of the features (0 where nothing is
+    hit) instead of the composite. ``refine_tiles``, ``antialias`` and
+    ``projection`` as in ``render_gaussians``.
+
+    Returns ``{"features" (H,W,C), "alpha", "final_T", "n_contrib"}`` plus
+    the per-Gaussian ``means2d``, ``conics``, ``depths``, ``radii``,
+    ``compensation``, ``visible``. Keyword-only additions: ``backend``,
+    ``blur``, ``tile_size``, ``chunk_size`` (channels per rasterizer pass).
+    """
+    del refine_tiles  # see render_gaussians
+    method = _projection_method(camera, projection)
+    features = features if isinstance(features, mx.array) else mx.array(features)
+    if features.ndim != 2:
+        raise ValueError(f"features must have shape (N, C), got {tuple(features.shape)}")
+    proj, opac, bins = _project_and_bin(camera, means, quats, scales, opacities, method, bool(antialias), blur, tile_size)
+    out = composite_features(proj.means2d, proj.conics, features, opac, bins, camera.width, camera.height, background, normalize, backend, chunk_size)
+    out.update(_projection_outputs(proj))
+    return out
+
+
+def render_gaussian_depth(
+    camera,
+    means,
+    quats,
+    scales,
+    opacities,
+    refine_tiles: bool = False,
+    antialias: bool = False,
+    projection: str = "auto",
+    *,
+    backend: str = "auto",
+    blur: float = 0.3,
+    tile_size: int = TILE_SIZE,
+) -> dict:
+    """Expected depth: the alpha-normalised camera z of the Gaussians' centres, 0 where nothing is hit.
+
+    Returns ``{"depth" (H,W), "alpha", "final_T", "n_contrib"}`` plus the
+    per-Gaussian entries of ``render_gaussian_features``. Differentiable.
+    (``render_gaussians(..., render_depth=True)`` composites the depth in the
+    colour pass, and can use surfel planes.)
+    """
+    method = _projection_method(camera, projection)
+    proj, opac, bins = _project_and_bin(camera, means, quats, scales, opacities, method, bool(antialias), blur, tile_size)
+    out = composite_features(proj.means2d, proj.conics, proj.depths[:, None], opac, bins, camera.width, camera.height, normalize=True, backend=backend)
+    out["depth"] = out.pop("features")[..., 0]
+    out.update(_projection_outputs(proj))
+    return out
+
+
+def _one_tile(radii, depths, width: int, height: int) -> Bins:
+    """Every Gaussian with radius > 0 in one tile covering the image, sorted by depth then index."""
+    r = np.asarray(radii)
+    ids = np.flatnonzero(r > 0)
+    ids = ids[np.argsort(np.asarray(mx.stop_gradient(depths), np.float32)[ids], kind="stable")]
+    return Bins(mx.array(np.array([0, ids.size], np.int32)), mx.array(ids.astype(np.int32)), 1, 1, max(int(width), int(height)))
+
+
+def render_gaussians_reference(
+    camera, means, quats, scales, opacities, colors, background=None, antialias: bool = False, *, projection: str = "auto", blur: float = 0.3,
+) -> dict:
+    """Naive renderer: every projected Gaussian evaluated at every pixel, in global depth order.
+
+    The test oracle for ``render_gaussians`` (same arguments, with colours or
+    any (N,C) features as ``colors``; background None, scalar or (C,)). No
+    tile binning: one list of all Gaussians with radius > 0 through the
+    pure-MLX reference compositor, so it checks the binning and the compiled
+    rasterizer at once. O(H·W·N) memory: small scenes only. Without the tiles
+    it also keeps the faint (alpha < ~0.01) rim of a Gaussian beyond its
+    3-sigma radius that the tiled renderer can cut, so compare with a
+    tolerance there. Returns ``{"image" (H,W,C), "alpha", "final_T"}``;
+    differentiable by MLX autodiff.
+    """
+    method = _projection_method(camera, projection)
+    proj, opac = _project(camera, means, quats, scales, opacities, method, bool(antialias), blur, [])
+    bins = _one_tile(proj.radii, proj.depths, camera.width, camera.height)
+    out = composite_features(proj.means2d, proj.conics, colors, opac, bins, camera.width, camera.height, background, backend="reference")
+    return {"image": out["features"], "alpha": out["alpha"], "final_T": out["final_T"]}

@@ -1,12 +1,12 @@
 """Projection of 3D Gaussians to 2D image-space Gaussians (MLX, differentiable).
 
-Two methods, one result type:
+Two methods, one result type (``Projection``, used inside the renderer):
 
-- EWA (``project_gaussians``): the camera-space covariance is pushed through
+- EWA (``project_ewa``): the camera-space covariance is pushed through
   the Jacobian of the pinhole projection at the Gaussian's centre, with x/z and
   y/z clamped to 1.3 times the half field of view (so that off-screen Gaussians
   do not explode). Exact for pinhole cameras only.
-- Unscented transform (``project_gaussians_ut``): 6 sigma points at
+- Unscented transform (``project_ut``): 6 sigma points at
   ``mean ± sqrt(3)·L_k`` (L = R·diag(s), so Σ = L Lᵀ) go through
   ``camera.camera_to_pixels`` — any camera model: distorted, fisheye,
   orthographic — and their spread gives the 2D covariance (exact for linear
@@ -18,7 +18,13 @@ Mip-Splatting. A Gaussian is culled (radius 0) when its centre is nearer than
 ``camera.near`` or farther than ``camera.far``, its blurred 2D covariance is
 not positive definite (determinant ≤ 0, negative diagonal, or not finite), or its 3σ box misses the image.
 Culled Gaussians produce finite values everywhere, so their gradients are
-exactly zero rather than NaN.
+exactly zero rather than NaN. ``means2d`` is the projected centre of every
+Gaussian in front of the camera, on screen or not (0 behind it or where it is
+not finite).
+
+The public ``project_gaussians`` / ``project_gaussians_ut`` return the same
+values as a dict, as the original mlx3D did: ``means2d``, ``conics``,
+``depths``, ``radii`` (float32) and ``compensation``.
 """
 
 from __future__ import annotations
@@ -92,6 +98,7 @@ def _finish(camera, means2d, cov2d, depths, valid, blur, antialias, det_orig=Non
     accurate form than a·c - b² (then the blurred one is det_orig + blur·(a + c) + blur²).
     """
     a, b, c = cov2d
+    in_front = valid
     # A covariance that overflowed float32 (UT sigma points sent ~1e19 px apart by a distorted lens
     # far outside its image) is culled, and replaced first: its inf would otherwise meet the zero
     # cotangent of the masks below in the backward pass (0 · inf = NaN).
@@ -130,11 +137,13 @@ def _finish(camera, means2d, cov2d, depths, valid, blur, antialias, det_orig=Non
     valid = valid & on_screen & mx.isfinite(radius)
     # a finite radius can still exceed int32 (UT through a strongly distorted lens): clamp before the cast
     radii = mx.where(valid, mx.minimum(radius, _MAX_RADIUS), 0.0).astype(mx.int32)
-    means2d = mx.where(valid[:, None], means2d, 0.0)
+    # the centre stays meaningful off screen; behind the camera (or overflowing) it is replaced by 0
+    centred = in_front & mx.stop_gradient(mx.all(mx.isfinite(means2d), axis=-1))
+    means2d = mx.where(centred[:, None], means2d, 0.0)
     return Projection(means2d, conics, radii, depths, compensation)
 
 
-def project_gaussians(camera, means, quats, scales, blur: float = 0.3, antialias: bool = False) -> Projection:
+def project_ewa(camera, means, quats, scales, blur: float = 0.3, antialias: bool = False) -> Projection:
     """EWA projection. means (N,3) world, quats (N,4) w,x,y,z (any length), scales (N,3) std-devs."""
     rot, trans = _camera_arrays(camera)
     p = means @ rot.T + trans
@@ -170,10 +179,10 @@ def project_gaussians(camera, means, quats, scales, blur: float = 0.3, antialias
     return _finish(camera, means2d, cov2d, z, valid, blur, antialias, det_orig)
 
 
-def project_gaussians_ut(camera, means, quats, scales, blur: float = 0.3, antialias: bool = False) -> Projection:
+def project_ut(camera, means, quats, scales, blur: float = 0.3, antialias: bool = False) -> Projection:
     """Unscented-transform projection through ``camera.camera_to_pixels`` (any camera model).
 
-    Same arguments and result as ``project_gaussians``. A Gaussian is culled
+    Same arguments and result as ``project_ewa``. A Gaussian is culled
     when any sigma point is nearer than ``camera.near``.
     """
     rot, trans = _camera_arrays(camera)
@@ -189,3 +198,48 @@ def project_gaussians_ut(camera, means, quats, scales, blur: float = 0.3, antial
     spread = camera.camera_to_pixels(safe_sigma)[0] - centre[:, None, :]  # (N,6,2)
     cov2d = (mx.swapaxes(spread, -1, -2) @ spread) / 6.0
     return _finish(camera, centre, (cov2d[:, 0, 0], cov2d[:, 0, 1], cov2d[:, 1, 1]), z, valid, blur, antialias)
+
+
+
+def projection_dict(proj: Projection) -> dict:
+    """The public (original mlx3D) form of a ``Projection``: a dict of (N,...) arrays.
+
+    ``means2d`` (N,2) pixel centres, ``conics`` (N,3) upper triangle (a, b, c)
+    of the inverse 2D covariance, ``depths`` (N,) camera z, ``radii`` (N,)
+    float32 pixel radii (0 = culled), ``compensation`` (N,) antialiasing
+    opacity factor (1 without antialias, 0 for culled Gaussians).
+    """
+    return {
+        "means2d": proj.means2d,
+        "conics": proj.conics,
+        "depths": proj.depths,
+        "radii": proj.radii.astype(mx.float32),
+        "compensation": proj.compensation,
+    }
+
+
+def project_gaussians(camera, means, quats, scales, blur: float = 0.3, antialias: bool = False) -> dict:
+    """Project 3D Gaussians to the image with EWA splatting (pinhole cameras).
+
+    camera: a ``Camera``; means (N,3) world centres; quats (N,4) rotations
+    (w, x, y, z), any length; scales (N,3) standard deviations; blur: pixels²
+    added to the 2D covariance's diagonal (0.3 as in 3DGS); antialias: also
+    compute the Mip-Splatting opacity compensation sqrt(det Σ / det(Σ + blur I)).
+
+    Returns a dict (see ``projection_dict``): ``means2d``, ``conics``,
+    ``depths``, ``radii``, ``compensation``. Differentiable except ``radii``.
+    The distortion of an ``'opencv'``/``'fisheye'`` camera and orthographic
+    cameras are not represented by EWA: use ``project_gaussians_ut``.
+    """
+    return projection_dict(project_ewa(camera, means, quats, scales, blur, antialias))
+
+
+def project_gaussians_ut(camera, means, quats, scales, blur: float = 0.3, antialias: bool = False) -> dict:
+    """Project 3D Gaussians with a 3D unscented transform through the camera's own model.
+
+    Six sigma points per Gaussian go through ``camera.camera_to_pixels``, so
+    Brown-Conrady and fisheye distortion and orthographic cameras are exact
+    for the centres and second-order accurate for the covariances. Same
+    arguments and dict as ``project_gaussians``.
+    """
+    return projection_dict(project_ut(camera, means, quats, scales, blur, antialias))

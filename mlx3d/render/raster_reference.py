@@ -28,7 +28,8 @@ T_MIN = 1e-4
 def rasterize_reference(
     means2d, conics, features, opacities, tile_offsets, flatten_ids, width: int, height: int, tile_size: int = 16, max_elements: int = 1 << 23
 ):
-    """Returns (accum (H,W,C) without background, alpha (H,W)) as MLX arrays."""
+    """Returns (accum (H,W,C) without background, alpha (H,W), last (H,W) int32) as MLX arrays,
+    ``last`` as in ``rasterize_cpu`` (1 + position of the last contributing entry in the tile's range, 0 if none)."""
     channels = features.shape[1]
     tiles_x = -(-width // tile_size)
     tiles_y = -(-height // tile_size)
@@ -36,16 +37,17 @@ def rasterize_reference(
     ids = np.asarray(flatten_ids, dtype=np.int64)
     counts = offsets[1:] - offsets[:-1]
     if ids.size == 0:  # nothing to draw (also covers N == 0)
-        return mx.zeros((height, width, channels)), mx.zeros((height, width))
+        return mx.zeros((height, width, channels)), mx.zeros((height, width)), mx.zeros((height, width), dtype=mx.int32)
     pix = tile_size * tile_size
     # pixel centres of one tile, row-major inside the tile
     local = np.stack(np.meshgrid(np.arange(tile_size), np.arange(tile_size), indexing="xy"), -1).reshape(-1, 2) + 0.5
 
-    rows_accum, rows_alpha = [], []
+    rows_accum, rows_alpha, rows_last = [], [], []
     t = 0
     num_tiles = tiles_x * tiles_y
     tile_accum = [None] * num_tiles
     tile_alpha = [None] * num_tiles
+    tile_last = [None] * num_tiles
     while t < num_tiles:
         # grow the chunk while it fits in max_elements
         end, widest = t, 0
@@ -75,17 +77,22 @@ def rasterize_reference(
         weight = mx.where(contributes, alpha * t_before, 0.0)  # (T,P,G)
         accum = weight @ features[gather]  # (T,P,G) @ (T,G,C) -> (T,P,C)
         t_final = mx.prod(mx.where(contributes, 1.0 - alpha, 1.0), axis=-1)
+        last = mx.max(mx.where(contributes, mx.arange(1, widest + 1, dtype=mx.int32), 0), axis=-1)  # (T,P)
         for row, tile in enumerate(chunk):
             tile_accum[tile] = accum[row]
             tile_alpha[tile] = 1.0 - t_final[row]
+            tile_last[tile] = last[row]
         t = end
 
     for ty in range(tiles_y):
         row_tiles = range(ty * tiles_x, (ty + 1) * tiles_x)
         acc = mx.concatenate([tile_accum[i].reshape(tile_size, tile_size, channels) for i in row_tiles], axis=1)
         alp = mx.concatenate([tile_alpha[i].reshape(tile_size, tile_size) for i in row_tiles], axis=1)
+        lst = mx.concatenate([tile_last[i].reshape(tile_size, tile_size) for i in row_tiles], axis=1)
         rows_accum.append(acc)
         rows_alpha.append(alp)
+        rows_last.append(lst)
     accum = mx.concatenate(rows_accum, axis=0)[:height, :width]
     alpha = mx.concatenate(rows_alpha, axis=0)[:height, :width]
-    return accum, alpha
+    last = mx.concatenate(rows_last, axis=0)[:height, :width]
+    return accum, alpha, last

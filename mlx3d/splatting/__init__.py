@@ -1,7 +1,9 @@
 """Gaussian splat models, spherical harmonics and rendering (the ``mlx3d.splatting`` API).
 
 The rendering names are re-exported from ``mlx3d.render`` on first use (the
-renderer itself imports ``mlx3d.splatting.sh``, so an eager import would be a cycle).
+renderer itself imports ``mlx3d.splatting.sh``, so an eager import would be a
+cycle). They keep the original mlx3D library's names, signatures, defaults and
+dict/tuple results; our additions are keyword-only arguments and extra keys.
 """
 
 from .model import GaussianModel, merge
@@ -20,14 +22,18 @@ from .sh import (
 )
 
 _RENDER_NAMES = (
+    "TILE_SIZE",
     "bin_gaussians",
     "project_gaussians",
     "project_gaussians_ut",
     "quat_scale_to_cov3d",
+    "rasterize",
+    "rasterize_depth",
     "rasterize_features",
     "render_gaussian_depth",
     "render_gaussian_features",
     "render_gaussians",
+    "render_gaussians_reference",
 )
 
 
