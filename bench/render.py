@@ -97,8 +97,8 @@ def _child(scene: str, path: str, repeat: int) -> None:
     out = render_gaussians(cam, *inputs[:4], colors=inputs[4], backend=backend)
     from mlx3d.render import bin_gaussians
 
-    bins = bin_gaussians(out["means2d"], out["radii"], out["depths"], cam.width, cam.height, conics=out["conics"], opacities=inputs[3])
-    per_pixel = bins.flatten_ids.size * 256 / (cam.width * cam.height)
+    sorted_ids, *_ = bin_gaussians(out["means2d"], out["radii"], out["depths"], cam.width, cam.height, conics=out["conics"], opacities=inputs[3])
+    per_pixel = sorted_ids.size * 256 / (cam.width * cam.height)
     print(json.dumps({"fwd_ms": fwd_ms, "fwd_sd": fwd_sd, "bwd_ms": bwd_ms, "bwd_sd": bwd_sd, "peak_mb": peak_rss_mb(), "per_pixel": per_pixel}))
 
 

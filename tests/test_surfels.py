@@ -124,7 +124,7 @@ def test_geometry_channels_match_explicit_feature_renders():
     out = render_gaussians(cam, **s, colors=mx.zeros((n, 3)), render_depth_variance=True, render_normals=True, depth_reference=4.0, backend="cpu")
     depth = np.asarray(s["means"])[:, 1] + 4.0
     feats = np.concatenate([depth[:, None], (depth[:, None] - 4.0) ** 2, np.array(facing_normals(cam, s["means"], s["quats"]))], 1)
-    ref = np.array(render_gaussian_features(cam, s["means"], s["quats"], s["scales"], s["opacities"], mx.array(feats.astype(np.float32)), normalize=True, backend="reference"))
+    ref = np.array(render_gaussian_features(cam, s["means"], s["quats"], s["scales"], s["opacities"], mx.array(feats.astype(np.float32)), normalize=True, backend="reference")["features"])
     hit = np.array(out["alpha"]) > 1e-3
     np.testing.assert_allclose(np.array(out["depth"])[hit], ref[..., 0][hit], atol=2e-4)
     variance = ref[..., 1] - (ref[..., 0] - 4.0) ** 2

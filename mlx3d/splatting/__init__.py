@@ -37,15 +37,22 @@ _RENDER_NAMES = (
 )
 
 
+_TRAINER_NAMES = ("GaussianTrainer", "TrainerConfig")  # the original's defaults (mlx3d.splatting.trainer)
+
+
 def __getattr__(name):
     if name in _RENDER_NAMES:
         from .. import render
 
         return getattr(render, name)
+    if name in _TRAINER_NAMES:
+        from . import trainer
+
+        return getattr(trainer, name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-__all__ = list(_RENDER_NAMES) + [
+__all__ = list(_RENDER_NAMES) + list(_TRAINER_NAMES) + [
     "C0",
     "MAX_SH_DEGREE",
     "GaussianModel",
