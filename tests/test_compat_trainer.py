@@ -21,7 +21,7 @@ from mlx3d.training.density import sgld_noise
 ORIGINAL_DEFAULTS = {
     "method": "vanilla", "lr_means": 1.6e-4, "lr_means_final": 1.6e-6, "lr_means_max_steps": 30_000,
     "lr_scales": 5e-3, "lr_quats": 1e-3, "lr_opacities": 5e-2, "lr_sh_dc": 2.5e-3, "lr_sh_rest": 2.5e-3 / 20.0,
-    "lambda_dssim": 0.2, "antialias": False, "projection": "ewa", "lambda_2d_depth_variance": 0.0,
+    "lambda_dssim": 0.2, "antialias": False, "lambda_2d_depth_variance": 0.0,
     "lambda_2d_normal_consistency": 0.0, "geometry_min_alpha": 0.05, "densify_from": 500, "densify_until": 15_000,
     "densify_every": 100, "densify_grad_threshold": 0.0002, "mcmc_relocate_frac": 0.02, "mcmc_min_opacity": 0.01,
     "mcmc_jitter_scale": 0.25, "mcmc_noise_scale": 0.01, "two_d_thickness": 1e-4, "opacity_reset_every": 3000,
@@ -45,6 +45,7 @@ def test_defaults_are_the_originals(method):
             assert getattr(config, name) == value, name
     assert config.background == "black" and TrainerConfig(white_background=True).background == "white"
     assert config.mcmc_growth == 0.0  # the original's MCMC keeps the count fixed
+    assert config.projection == "auto"  # EWA on pinhole cameras, as the original's 'ewa'; see mlx3d.splatting.trainer
 
 
 def test_original_field_names_drive_our_trainer():

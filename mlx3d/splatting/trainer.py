@@ -11,8 +11,10 @@ way it did there:
   ``mlx3d.training.TrainerConfig`` defaults to the 3DGS-MCMC paper instead
   (every dead Gaussian relocated, no jitter, opacity-gated noise, the
   regularisers, growth to a budget).
-- ``projection='ewa'`` (``'auto'`` there picks ``'ut'`` for distorted cameras),
-  ``densify_until=15000`` and ``lr_means_max_steps=30000`` for every method.
+- ``densify_until=15000`` and ``lr_means_max_steps=30000`` for every method.
+  ``projection`` stays ``'auto'``, as in ``render_gaussians``: EWA for every
+  pinhole camera (the original's ``'ewa'``), the unscented transform for
+  distorted, fisheye and orthographic cameras, which EWA cannot draw.
 - 2DGS: thickness 1e-4 of the extent and no geometry regularisers unless
   their weights are set (``geometry_min_alpha=0.05``, from step 0).
 """
@@ -31,7 +33,6 @@ __all__ = ["GaussianTrainer", "TrainerConfig"]
 class TrainerConfig(_TrainerConfig):
     """:class:`mlx3d.training.TrainerConfig` with the original mlx3D's defaults (see the module)."""
 
-    projection: str = "ewa"
     lr_means_max_steps: int | None = 30_000
     densify_until: int | None = 15_000
     mcmc_min_opacity: float = 0.01
