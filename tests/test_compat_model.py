@@ -401,3 +401,18 @@ def test_render_depth_method():
     assert isinstance(out, dict) and tuple(out["depth"].shape) == (25, 33)
     assert float(out["depth"][12, 16]) == pytest.approx(3.0, rel=1e-3)
     assert float(out["alpha"][12, 16]) > 0.9 and float(out["alpha"][0, 0]) < 1e-3
+
+
+def test_render_features_composites_like_the_rgb_render():
+    """model.render_features(camera, features) returns mlx3D's dict; with the DC colours as features it is the degree-0 render."""
+    from mlx3d.cameras import Camera
+
+    rng = np.random.default_rng(4)
+    model = GaussianModel.from_points(rng.uniform(-0.5, 0.5, (200, 3)), rng.uniform(0, 1, (200, 3)))
+    cam = Camera.look_at(eye=(0.0, 0.0, -3.0), width=40, height=32, fov=50)
+    colours = mx.maximum(model.colors, 0.0)
+    out = model.render_features(cam, colours, background=mx.array([0.2, 0.4, 0.6]))
+    assert {"features", "alpha"} <= set(out) and out["features"].shape == (32, 40, 3)
+    rgb = model.render(cam, background=(0.2, 0.4, 0.6), sh_degree=0)
+    np.testing.assert_allclose(np.array(out["features"]), np.array(rgb["image"]), atol=2e-5)
+    np.testing.assert_allclose(np.array(out["alpha"]), np.array(rgb["alpha"]), atol=2e-6)
