@@ -117,6 +117,14 @@ def test_console_script_help(command):
     assert result.returncode == 0 and "usage: mlx3d " + command in result.stdout
 
 
+def test_python_dash_m_runs_the_cli(tmp_path):
+    """``python -m mlx3d`` is the same command line, exit codes included."""
+    ok = subprocess.run([sys.executable, "-m", "mlx3d", "info", "--help"], capture_output=True, text=True, timeout=60)
+    assert ok.returncode == 0 and "usage: mlx3d info" in ok.stdout
+    missing = subprocess.run([sys.executable, "-m", "mlx3d", "info", str(tmp_path / "missing.ply")], capture_output=True, text=True, timeout=60)
+    assert missing.returncode == 1 and "missing.ply" in missing.stderr + missing.stdout
+
+
 def test_mesh_writes_a_coloured_mesh_and_refuses_transparent_models(tmp_path, capsys):
     from mlx3d.io.mesh_ply import read_mesh_ply
 
