@@ -29,7 +29,8 @@ see ``mlx3d.training.colour``) as the mean over the views and the worst view,
 the final number of Gaussians, steps/s, peak resident memory and train time.
 The worst held-out view (lowest PSNR) of every run is saved as a side-by-side
 PNG (ground truth | render) in the output folder, with ``results.json``
-(every row, the machine and its load average during the run).
+(every row with its per-view metrics, the machine and its load average during
+the run) and each run's trained model as ``<scene>_<method>_<variant>.ply``.
 
 Anchor (OpenSplat 1.1.5, CPU mode, same machine, a similar scene): 2.8 steps/s
 on average over 2000 steps (0.44 s/step at 32k Gaussians), 3.6 GB peak, 28.1 dB
@@ -97,6 +98,7 @@ def _child(args) -> None:
                 "ssim": report["ssim"], "ssim_worst": min(v["ssim"] for v in views),
                 "cc_psnr": report["cc_psnr"], "cc_psnr_worst": report["cc_worst"]["cc_psnr"], "cc_worst_view": report["cc_worst"]["name"],
                 "cc_ssim": report["cc_ssim"], "eval_seconds": time.perf_counter() - t1,
+                "per_view": views,
             })
             if milestone == milestones[-1]:
                 index = next(i for i in dataset.test if dataset.frames[i].name == report["worst"]["name"])
@@ -104,6 +106,10 @@ def _child(args) -> None:
                 os.makedirs(args.out, exist_ok=True)
                 row["worst_png"] = os.path.join(args.out, f"{scene}_{method}_{variant}_worst.png")
                 save_side_by_side(row["worst_png"], target, image)
+        if milestone == milestones[-1]:  # the trained model, to re-evaluate or inspect without training again
+            os.makedirs(args.out, exist_ok=True)
+            row["ply"] = os.path.join(args.out, f"{scene}_{method}_{variant}.ply")
+            trainer.model.save_ply(row["ply"])
         row["peak_rss_mb"] = peak_rss_mb()
         print(json.dumps(row), flush=True)
 
