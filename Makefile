@@ -1,12 +1,45 @@
 # The README's two commands: `make demo` runs the main job end to end in Blender
-# on the built-in default scene; `make test` runs the test suite. Both create the
-# virtual environment and build the compiled extension on first use.
-PYTHON ?= python3.11
+# on the built-in default scene; `make test` runs the test suite on each supported
+# Blender/Python/numpy combination (the matrix below). Both create their virtual
+# environments and build the compiled extension on first use.
+
+# Interpreters. `find_python` prints the newest pyenv install of Python X.Y
+# (`pyenv root`/versions/X.Y.*), else pythonX.Y on PATH, keeping only one that
+# runs and reports X.Y (a pyenv shim of a version that is not selected fails);
+# it prints nothing when there is none. Pass PYTHON311=... or PYTHON313=... to
+# use another interpreter.
+find_python = $(shell for p in $$(ls -d "$$(pyenv root 2>/dev/null)"/versions/$(1).*/bin/python$(1) 2>/dev/null | sort -rV) python$(1); do \
+	v=$$("$$p" -c 'import sys; print("%d.%d" % sys.version_info[:2])' 2>/dev/null) && [ "$$v" = "$(1)" ] && { command -v "$$p"; break; }; done)
+PYTHON311 ?= $(call find_python,3.11)
+PYTHON313 ?= $(call find_python,3.13)
+
+# The venv the other targets use (`make demo`, `make bench`, ...) and the exact
+# bpy (Blender as a Python module, for tests/blender) installed into it with the
+# package and its [test] extra. Without BPY=, the pin follows the venv's Python:
+# 5.0.1 (Blender 5.0, numpy 1.26) for 3.11, 5.2.3 (numpy 2.x) for 3.13.
+PYTHON ?= $(PYTHON311)
 VENV ?= .venv
 PY := $(VENV)/bin/python
-STAMP := $(VENV)/.mlx3d-installed
+BPY_3.11 := 5.0.1
+BPY_3.13 := 5.2.3
+BPY ?= $(BPY_$(shell $(if $(wildcard $(PY)),$(PY),$(or $(PYTHON),false)) -c 'import sys; print("%d.%d" % sys.version_info[:2])' 2>/dev/null))
+# The stamp names the bpy pin, so a venv is reinstalled when its pin changes.
+STAMP := $(VENV)/.mlx3d-installed-bpy$(BPY)
+# CMake build directory of the editable install. Venvs of the same Python would
+# otherwise share build/{wheel_tag}, and an editable _core links to the MLX of
+# the venv that configured it, so every venv but .venv builds under its own name.
+BUILD_DIR ?= build/$(if $(filter .venv,$(VENV)),,$(VENV:.%=%)/){wheel_tag}
 
-.PHONY: demo test bench bench-scenes report install extension
+# `make test` runs every entry, in its own venv, and fails if any failed:
+#   test-py311      .venv            Python 3.11, bpy 5.0.1 (numpy 1.26, as Blender 4.5 and 5.0): whole suite
+#   test-py313      .venv-py313      Python 3.13, bpy 5.2.3 (numpy 2.x, as Blender 5.1+): whole suite
+#   test-blender45  .venv-blender45  Python 3.11, bpy 4.5.x LTS: tests/blender (the installed extension zip)
+# Each entry prints its wall time. PYTEST_ARGS adds pytest options (e.g. -x, -k).
+TEST_MATRIX := test-py311 test-py313 test-blender45
+BPY_LTS := 4.5.15
+PYTEST_ARGS ?=
+
+.PHONY: demo test $(TEST_MATRIX) test-venv bench bench-scenes report install extension
 
 # `make demo` runs the Blender extension as a user would: it builds the extension
 # zip for this machine and the venv's Python (build/demo-extension/), installs and
@@ -34,8 +67,32 @@ demo: $(STAMP)
 	BLENDER_USER_RESOURCES=$(BLENDER_USER) $(PY) -c "$(INSTALL_EXTENSION)" $(DEMO_ZIP_DIR)/$(EXTENSION_ID)-*.zip
 	BLENDER_USER_RESOURCES=$(BLENDER_USER) $(PY) $(BLENDER_USER)/extensions/user_default/$(EXTENSION_ID)/addon/blender_splat.py demo --out demo_out
 
-test: $(STAMP)
-	$(PY) -m pytest -q
+test:
+	@failed=; for entry in $(TEST_MATRIX); do \
+		start=$$(date +%s); \
+		$(MAKE) --no-print-directory $$entry || failed="$$failed $$entry"; \
+		echo "make $$entry: $$(( $$(date +%s) - start )) s"; \
+	done; \
+	if [ -n "$$failed" ]; then echo "make test: failed:$$failed" >&2; exit 1; fi
+
+test-py311:
+	@$(call require_python,3.11,$(PYTHON311))
+	$(MAKE) --no-print-directory test-venv VENV=.venv PYTHON="$(PYTHON311)" BPY=$(BPY_3.11)
+
+test-py313:
+	@$(call require_python,3.13,$(PYTHON313))
+	$(MAKE) --no-print-directory test-venv VENV=.venv-py313 PYTHON="$(PYTHON313)" BPY=$(BPY_3.13)
+
+test-blender45:
+	@$(call require_python,3.11,$(PYTHON311))
+	$(MAKE) --no-print-directory test-venv VENV=.venv-blender45 PYTHON="$(PYTHON311)" BPY=$(BPY_LTS) TESTS=tests/blender
+
+# The tests of one venv (VENV, PYTHON, BPY as above; TESTS: pytest paths).
+TESTS ?=
+test-venv: $(STAMP)
+	$(PY) -m pytest -q $(PYTEST_ARGS) $(TESTS)
+
+require_python = test -n "$(2)" || { echo "make: Python $(1) was not found (looked for pyenv's $(1).* and python$(1) on PATH): install it (e.g. 'pyenv install $(1)') or pass PYTHON$(subst .,,$(1))=/path/to/python$(1)" >&2; exit 1; }
 
 bench: $(STAMP)
 	$(PY) bench/ply_io.py
@@ -60,11 +117,17 @@ install: $(STAMP)
 extension: $(STAMP)
 	$(PY) addon/package.py
 
-# Editable install without build isolation: the extension builds against the
-# pinned mlx in this venv, and edited C++ sources rebuild on the next import.
+# Editable install without build isolation in a fixed build directory: the
+# extension builds against the pinned mlx in this venv, and edited C++ sources
+# rebuild on the next import (editable.rebuild; off in pyproject.toml because an
+# isolated `pip install -e .` deletes the tools a rebuild needs).
+# bpy is installed in the same pip run as the package, so numpy satisfies both.
 $(STAMP): pyproject.toml CMakeLists.txt
+	@test -n "$(BPY)" || { echo "make: no bpy pin for $(VENV): its Python ($(or $(wildcard $(PY)),$(PYTHON),none found)) is not 3.11 or 3.13; pass PYTHON=/path/to/python3.X or BPY=X.Y.Z" >&2; exit 1; }
+	@test -x $(PY) || test -n "$(PYTHON)" || { echo "make: no Python to create $(VENV) with: pass PYTHON=/path/to/python3.11" >&2; exit 1; }
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -c "import subprocess, sys, tomllib; reqs = tomllib.load(open('pyproject.toml', 'rb'))['build-system']['requires']; subprocess.check_call([sys.executable, '-m', 'pip', 'install', '-q', *reqs])"
-	$(PY) -m pip install -q --no-build-isolation -e ".[test]"
+	$(PY) -m pip install -q --no-build-isolation -C build-dir=$(BUILD_DIR) -C editable.rebuild=true -e ".[test]" "bpy==$(BPY)"
+	rm -f $(VENV)/.mlx3d-installed*
 	touch $@

@@ -75,7 +75,7 @@ QUICK = DemoSettings(views=8, resolution=32, samples=4, num_points=2000, steps=1
 
 
 # ------------------------------------------------------------------ scene
-def _node_tree(idblock):
+def node_tree(idblock):
     """The node tree of a material or world, switching nodes on where Blender still has the toggle (4.x)."""
     if getattr(idblock, "node_tree", None) is None:
         idblock.use_nodes = True
@@ -90,7 +90,7 @@ def _material(name, *, base_rgb, roughness=0.8, texture=None):
     the texture's mean colour.
     """
     material = bpy.data.materials.new(name)
-    tree = _node_tree(material)
+    tree = node_tree(material)
     bsdf = next(n for n in tree.nodes if n.type == "BSDF_PRINCIPLED")
     bsdf.inputs["Base Color"].default_value = (*base_rgb, 1.0)
     bsdf.inputs["Roughness"].default_value = roughness
@@ -179,7 +179,7 @@ def build_demo_scene(scene=None) -> list:
 
     world = scene.world or bpy.data.worlds.new("World")
     scene.world = world
-    background = next(n for n in _node_tree(world).nodes if n.type == "BACKGROUND")
+    background = next(n for n in node_tree(world).nodes if n.type == "BACKGROUND")
     background.inputs["Color"].default_value = (0.40, 0.42, 0.45, 1.0)
     background.inputs["Strength"].default_value = 1.0
     bpy.context.view_layer.update()

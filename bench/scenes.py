@@ -66,7 +66,7 @@ import numpy as np
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
 SCENES = ("outdoor", "exposure", "object_rgba", "synthetic_nopoints")
-FORMAT_VERSION = 1  # bump when a scene changes, so stale renders are not reused
+FORMAT_VERSION = 2  # bump when a scene changes, so stale renders are not reused
 
 # Outdoor and exposure cameras.
 RING_ELEVATIONS = (15.0, 35.0)
@@ -74,12 +74,15 @@ RING_VIEWS = 48
 RING_DISTANCE = 3.2
 OUTDOOR_LENS = 40.0  # mm on a 36 mm sensor: 48 degrees across
 # Held-out views: (elevation degrees, distance as a multiple of RING_DISTANCE, azimuth degrees).
+# None is lower than the lowest ring: the lowest ring (15 degrees, +-24 degree field) sees the sky
+# up to 9 degrees above the horizon, and a lower camera at ring distance would look at sky and at
+# ground-level space around itself that no training photo shows (no method can know them).
 OUTDOOR_HELD_OUT = (
-    (5.0, 1.0, 10.0), (5.0, 1.0, 190.0),
+    (20.0, 1.0, 10.0), (20.0, 1.0, 190.0),
     (60.0, 1.0, 80.0), (60.0, 1.0, 260.0),
     (25.0, 0.7, 40.0), (25.0, 0.7, 220.0),
     (25.0, 1.4, 130.0), (25.0, 1.4, 310.0),
-    (48.0, 0.85, 160.0), (10.0, 1.2, 345.0),
+    (48.0, 0.85, 160.0), (15.0, 1.2, 345.0),
 )
 GROUND_SIZE = 80.0  # metres across
 POINT_GROUND_RADIUS = 2.5  # initial points on the ground within this distance of the origin (the objects' middle)
@@ -118,11 +121,13 @@ def _bpy():
 
 def _new_scene(bpy, sky_rgb, sky_strength, sun_strength, sun_elevation, sun_azimuth):
     """An empty scene with a plain-coloured World and a sun."""
+    from addon.demo import node_tree
+
     assert bpy.ops.wm.read_homefile(use_empty=True) == {"FINISHED"}
     scene = bpy.context.scene
     world = bpy.data.worlds.new("World")
     scene.world = world
-    background = world.node_tree.nodes["Background"]
+    background = node_tree(world).nodes["Background"]
     background.inputs["Color"].default_value = (*sky_rgb, 1.0)
     background.inputs["Strength"].default_value = sky_strength
     sun = bpy.data.objects.new("Sun", bpy.data.lights.new("Sun", "SUN"))
@@ -150,8 +155,10 @@ def _material(bpy, name, texture, colours, scale, roughness=0.6, upright=False, 
     (x + y, z) instead of (x, y, z), so that a 2D texture (bricks) stands on
     vertical faces.
     """
+    from addon.demo import node_tree
+
     material = bpy.data.materials.new(name)
-    tree = material.node_tree
+    tree = node_tree(material)
     nodes, links = tree.nodes, tree.links
     bsdf = nodes["Principled BSDF"]
     bsdf.inputs["Roughness"].default_value = roughness
@@ -406,7 +413,8 @@ def capture_outdoor(bpy, capture, folder, args):
     return {
         "name": "outdoor",
         "purpose": "a backdrop that must be reconstructed: textured objects on an 80 m textured ground under a plain sky "
-                   "(opaque images); held-out views off the training rings (other heights, closer, farther, other azimuths)",
+                   "(opaque images); held-out views off the training rings (other heights, closer, farther, other azimuths; none below the "
+                   "lowest ring, whose photos are the only ones of the low sky)",
         "layout": "nerfstudio (transforms.json with train_filenames / test_filenames, points3d.ply)",
         "background": "sky colour from the World background, alpha 255",
         "objects": sorted(o.name for o in scene.objects if o.type == "MESH"),

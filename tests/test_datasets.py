@@ -155,22 +155,27 @@ def write_colmap_binary(sparse, scene, cameras=COLMAP_CAMERAS):
                 fh.write(struct.pack("<II", iid, pidx))
 
 
+def text_float(x):
+    """A float as COLMAP writes it, exactly (``repr`` of a numpy 2 scalar is ``np.float64(...)``)."""
+    return repr(float(x))
+
+
 def write_colmap_text(sparse, scene, cameras=COLMAP_CAMERAS):
     sparse.mkdir(parents=True, exist_ok=True)
     lines = ["# Camera list with one line of data per camera:", "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]"]
     for cid, (_, name, params) in cameras.items():
-        lines.append(" ".join([str(cid), name, str(W), str(H), *map(repr, params)]))
+        lines.append(" ".join([str(cid), name, str(W), str(H), *map(text_float, params)]))
     (sparse / "cameras.txt").write_text("\n".join(lines) + "\n")
     lines = ["# Image list with two lines of data per image:",
              "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME",
              "#   POINTS2D[] as (X, Y, POINT3D_ID)"]
     for im in scene["images"]:
-        lines.append(" ".join([str(im["id"]), *map(repr, im["q"]), *map(repr, im["t"]), str(im["cam"]), im["name"]]))
-        lines.append(" ".join(f"{x!r} {y!r} {pid}" for x, y, pid in im["pts2d"]))  # may be empty
+        lines.append(" ".join([str(im["id"]), *map(text_float, im["q"]), *map(text_float, im["t"]), str(im["cam"]), im["name"]]))
+        lines.append(" ".join(f"{text_float(x)} {text_float(y)} {pid}" for x, y, pid in im["pts2d"]))  # may be empty
     (sparse / "images.txt").write_text("\n".join(lines) + "\n")
     lines = ["# 3D point list with one line of data per point:"]
     for n, (p, c) in enumerate(zip(scene["points"], scene["colors"])):
-        lines.append(" ".join([str(1000 + n), *map(repr, p.tolist()), *map(str, c.tolist()), "0.5", "100 0"]))
+        lines.append(" ".join([str(1000 + n), *map(text_float, p.tolist()), *map(str, c.tolist()), "0.5", "100 0"]))
     (sparse / "points3D.txt").write_text("\n".join(lines) + "\n")
 
 

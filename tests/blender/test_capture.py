@@ -20,6 +20,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from node_trees import node_tree
 from modal_state import ESC, KEY, MOVE, OperatorState, TIMER
 from panel_layout import RecordingLayout
 
@@ -151,7 +152,7 @@ def read_points_ply(path):
 
 def principled(name, rgb):
     material = bpy.data.materials.new(name)
-    material.node_tree.nodes["Principled BSDF"].inputs["Base Color"].default_value = (*rgb, 1.0)
+    node_tree(material).nodes["Principled BSDF"].inputs["Base Color"].default_value = (*rgb, 1.0)
     return material
 
 
@@ -160,7 +161,7 @@ def build_scene():
     scene = bpy.context.scene
     world = bpy.data.worlds.new("World")
     scene.world = world
-    background = world.node_tree.nodes["Background"]
+    background = node_tree(world).nodes["Background"]
     background.inputs["Color"].default_value = (1.0, 1.0, 1.0, 1.0)
     background.inputs["Strength"].default_value = 1.0
     bpy.ops.mesh.primitive_cube_add(size=2 * CUBE_HALF, location=(0, 0, 0))
@@ -177,7 +178,8 @@ def build_scene():
     user_cam.data.lens = 85
     scene.camera = user_cam
     r = scene.render
-    r.engine = "BLENDER_EEVEE"
+    engines = {item.identifier for item in r.bl_rna.properties["engine"].enum_items}
+    r.engine = "BLENDER_EEVEE" if "BLENDER_EEVEE" in engines else "BLENDER_EEVEE_NEXT"  # EEVEE's name in 4.x
     r.resolution_x, r.resolution_y, r.resolution_percentage = 640, 360, 50
     r.film_transparent = False
     r.filepath = "//user_render_"
@@ -207,7 +209,8 @@ def snapshot(scene):
         "camera": scene.camera.name if scene.camera else None,
         "render": (r.engine, r.resolution_x, r.resolution_y, r.resolution_percentage, r.pixel_aspect_x, r.pixel_aspect_y,
                    r.film_transparent, r.filepath, r.use_persistent_data, r.use_compositing, r.dither_intensity, r.use_border),
-        "image": (im.media_type, im.file_format, im.color_mode, im.color_depth, im.color_management),
+        "image": (getattr(im, "media_type", None),  # 5.0+
+                   im.file_format, im.color_mode, im.color_depth, im.color_management),
         "cycles": (c.samples, c.device, c.use_denoising, c.use_adaptive_sampling),
         "view": (v.view_transform, v.look, v.exposure, v.gamma, v.use_curve_mapping, scene.display_settings.display_device),
         "selected": sorted(o.name for o in scene.objects if o.select_get()),
@@ -499,7 +502,8 @@ def test_point_colours_from_colour_attributes_and_defaults(extension, clean_scen
     for i in range(8):
         attr.data[i].color = left if i < 4 else right
     material = bpy.data.materials.new("attr")
-    nodes, links = material.node_tree.nodes, material.node_tree.links
+    tree = node_tree(material)
+    nodes, links = tree.nodes, tree.links
     node = nodes.new("ShaderNodeVertexColor")
     node.layer_name = "Col"
     links.new(node.outputs["Color"], nodes["Principled BSDF"].inputs["Base Color"])
@@ -511,7 +515,8 @@ def test_point_colours_from_colour_attributes_and_defaults(extension, clean_scen
     plain.data.from_pydata([(-1, 3, 0), (1, 3, 0), (1, 4, 0)], [], [(0, 1, 2)])
     scene.collection.objects.link(plain)
     glow = bpy.data.materials.new("glow")
-    nodes, links = glow.node_tree.nodes, glow.node_tree.links
+    tree = node_tree(glow)
+    nodes, links = tree.nodes, tree.links
     emission = nodes.new("ShaderNodeEmission")
     emission.inputs["Color"].default_value = (0.2, 1.0, 0.2, 1.0)
     links.new(emission.outputs["Emission"], nodes["Material Output"].inputs["Surface"])

@@ -17,6 +17,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from node_trees import node_tree
 from modal_state import ESC, KEY, MOVE, OperatorState, TIMER
 from panel_layout import RecordingLayout
 
@@ -35,12 +36,12 @@ def build_scene():
     scene = bpy.context.scene
     world = bpy.data.worlds.new("World")
     scene.world = world
-    world.node_tree.nodes["Background"].inputs["Color"].default_value = (1.0, 1.0, 1.0, 1.0)
+    node_tree(world).nodes["Background"].inputs["Color"].default_value = (1.0, 1.0, 1.0, 1.0)
     for add, kwargs, rgb in [(bpy.ops.mesh.primitive_cube_add, dict(size=1.0, location=(0, 0, 0)), (0.05, 0.05, 0.8)),
                              (bpy.ops.mesh.primitive_uv_sphere_add, dict(radius=0.4, location=(0, 0, 1), segments=24, ring_count=12), (0.8, 0.05, 0.05))]:
         add(**kwargs)
         material = bpy.data.materials.new("m")
-        material.node_tree.nodes["Principled BSDF"].inputs["Base Color"].default_value = (*rgb, 1.0)
+        node_tree(material).nodes["Principled BSDF"].inputs["Base Color"].default_value = (*rgb, 1.0)
         bpy.context.active_object.data.materials.append(material)
     return scene
 
