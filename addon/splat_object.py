@@ -56,6 +56,7 @@ _LAYOUT = {
     "FLOAT_VECTOR": (3, "vector", np.float32),
     "QUATERNION": (4, "value", np.float32),
     "FLOAT_COLOR": (4, "color", np.float32),
+    "FLOAT4": (4, "vector", np.float32),  # Blender 5.3+ (radiance:base)
 }
 _INT_TYPES = {np.dtype(t) for t in (np.int8, np.uint8, np.int16, np.uint16, np.int32)}
 
@@ -284,8 +285,6 @@ def _write_native(cloud, arrays, scales, opacity) -> None:
     """Blender 5.3+: the attributes its own splat importer writes, so its renderer draws ours."""
     types = {item.identifier for item in bpy.types.Attribute.bl_rna.properties["data_type"].enum_items}
     float4 = "FLOAT4" if "FLOAT4" in types else "FLOAT_COLOR"
-    if float4 not in _LAYOUT:
-        _LAYOUT[float4] = (4, "value", np.float32)
     _set(cloud.attributes, "scale", "FLOAT_VECTOR", scales)
     _set(cloud.attributes, "radiance:base", float4, np.column_stack([arrays.sh_dc[:, 0, :], opacity]))
     for k in range(arrays.sh_rest.shape[1]):

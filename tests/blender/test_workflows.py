@@ -345,6 +345,65 @@ def test_export_reads_blender_native_splat_layout(extension, clean_scene, tmp_pa
     np.testing.assert_allclose(out.opacities, arrays.opacities, atol=1e-3)
 
 
+def test_blender_native_splat_layout_is_written_from_5_3(extension, clean_scene, tmp_path, monkeypatch):
+    """On 5.3+ (forced here: the check is one constant) import also writes Blender's own layout, exactly."""
+    splat_object = extension.addon.splat_object
+    make_ply(tmp_path / "in.ply", n=30, degree=2, extras=False)
+    arrays = read_splat_ply(tmp_path / "in.ply")
+    native = bpy.app.version >= (5, 3, 0)
+    assert ("radiance:base" in import_file(tmp_path / "in.ply").data.attributes) == native
+    monkeypatch.setattr(splat_object, "NATIVE_SPLAT_VERSION", (0, 0, 0))
+    attrs = import_file(tmp_path / "in.ply").data.attributes
+
+    def read(name, comps):
+        attr = attrs[name]
+        assert attr.domain == "POINT"
+        key = {"FLOAT_VECTOR": "vector", "FLOAT4": "vector", "FLOAT_COLOR": "color"}.get(attr.data_type, "value")
+        out = np.empty(30 * comps, np.float32)
+        attr.data.foreach_get(key, out)
+        return out.reshape(30, comps)
+
+    np.testing.assert_allclose(read("scale", 3), np.exp(arrays.scales.astype(np.float64)), rtol=1e-6)
+    alpha = 1 / (1 + np.exp(-arrays.opacities.astype(np.float64)))
+    np.testing.assert_allclose(read("radiance:base", 4), np.column_stack([arrays.sh_dc[:, 0], alpha]), rtol=1e-6, atol=1e-7)
+    for k in range(8):
+        np.testing.assert_array_equal(read(f"radiance:sh_{k}", 3), arrays.sh_rest[:, k])
+    assert "radiance:sh_8" not in attrs
+    quats = arrays.quats.astype(np.float64)
+    np.testing.assert_allclose(read("rotation", 4), quats / np.linalg.norm(quats, axis=1, keepdims=True), atol=1e-6)
+    export_file(tmp_path / "out.ply")
+    np.testing.assert_array_equal(read_splat_ply(tmp_path / "out.ply").sh_rest, arrays.sh_rest)
+
+
+@pytest.mark.skipif(bpy.app.version < (5, 3, 0), reason="Blender's own 3DGS PLY import arrived in 5.3")
+def test_blender_5_3_own_import_matches_ours_and_exports_exactly(extension, clean_scene, tmp_path):
+    """Blender's importer (wm.ply_import) and ours give the same splat attributes; its objects export the file's values."""
+    make_ply(tmp_path / "in.ply", n=40, degree=3, extras=False)
+    arrays = read_splat_ply(tmp_path / "in.ply")
+    assert bpy.ops.wm.ply_import(filepath=str(tmp_path / "in.ply")) == {"FINISHED"}
+    theirs = bpy.context.active_object
+    assert theirs.data.type == "GAUSSIAN_SPLAT"
+    ours = import_file(tmp_path / "in.ply")
+    assert ours.data.type == "GAUSSIAN_SPLAT"
+    for name in ["position", "scale", "rotation", "radiance:base"] + [f"radiance:sh_{k}" for k in range(15)]:
+        a, b = theirs.data.attributes[name], ours.data.attributes[name]
+        assert (a.data_type, a.domain) == (b.data_type, b.domain), name
+        key = "value" if a.data_type == "QUATERNION" else "vector"
+        va, vb = np.empty(40 * 4, np.float32), np.empty(40 * 4, np.float32)
+        size = 40 * (3 if a.data_type == "FLOAT_VECTOR" else 4)
+        a.data.foreach_get(key, va[:size])
+        b.data.foreach_get(key, vb[:size])
+        np.testing.assert_allclose(vb[:size], va[:size], rtol=1e-6, atol=1e-7, err_msg=name)
+    select_only(theirs)
+    export_file(tmp_path / "theirs.ply", use_selection=True)
+    out = read_splat_ply(tmp_path / "theirs.ply")
+    np.testing.assert_array_equal(out.means, arrays.means)
+    np.testing.assert_array_equal(out.sh_dc, arrays.sh_dc)
+    np.testing.assert_array_equal(out.sh_rest, arrays.sh_rest)
+    np.testing.assert_allclose(out.scales, arrays.scales, atol=1e-5)
+    np.testing.assert_allclose(out.opacities, arrays.opacities, atol=1e-3)
+
+
 # ------------------------------------------------------------------ headless
 def test_headless_compose_script(extension, extension_env, tmp_path):
     make_ply(tmp_path / "scene.ply", n=120, seed=8, extras=False)
