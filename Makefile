@@ -34,15 +34,14 @@ BUILD_DIR ?= build/$(if $(filter .venv,$(VENV)),,$(VENV:.%=%)/){wheel_tag}
 #   test-py311      .venv            Python 3.11, bpy 5.0.1 (numpy 1.26, as Blender 4.5 and 5.0): whole suite
 #   test-py313      .venv-py313      Python 3.13, bpy 5.2.3 (numpy 2.x, as Blender 5.1+): whole suite
 #   test-blender45  .venv-blender45  Python 3.11, bpy 4.5.x LTS: tests/blender (the installed extension zip)
-# Each entry prints its wall time. PYTEST_ARGS adds pytest options (e.g. -x, -k).
-# Outside `make test` (CI's 30 minutes on 2 cores hold three entries):
 #   test-blender53  .venv-blender53  Python 3.13, bpy 5.3.0 (numpy 2.x): tests/blender, incl. Blender's own 3DGS import
-TEST_MATRIX := test-py311 test-py313 test-blender45
+# Each entry prints its wall time. PYTEST_ARGS adds pytest options (e.g. -x, -k).
+TEST_MATRIX := test-py311 test-py313 test-blender45 test-blender53
 BPY_LTS := 4.5.15
 BPY_LATEST := 5.3.0
 PYTEST_ARGS ?=
 
-.PHONY: demo test $(TEST_MATRIX) test-blender53 test-venv bench bench-scenes report install extension
+.PHONY: demo test $(TEST_MATRIX) test-venv bench bench-scenes report install extension
 
 # `make demo` runs the Blender extension as a user would: it builds the extension
 # zip for this machine and the venv's Python (build/demo-extension/), installs and
