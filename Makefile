@@ -35,8 +35,10 @@ BUILD_DIR ?= build/$(if $(filter .venv,$(VENV)),,$(VENV:.%=%)/){wheel_tag}
 #   test-py313      .venv-py313      Python 3.13, bpy 5.2.3 (numpy 2.x, as Blender 5.1+): whole suite
 #   test-blender45  .venv-blender45  Python 3.11, bpy 4.5.x LTS: tests/blender (the installed extension zip)
 #   test-blender53  .venv-blender53  Python 3.13, bpy 5.3.0 (numpy 2.x): tests/blender, incl. Blender's own 3DGS import
+#   test-pip-editable  (temporary)   Python 3.11: a contributor's plain `pip install -e .` (build isolation)
+#                    imports the compiled module and runs `python -m mlx3d`
 # Each entry prints its wall time. PYTEST_ARGS adds pytest options (e.g. -x, -k).
-TEST_MATRIX := test-py311 test-py313 test-blender45 test-blender53
+TEST_MATRIX := test-py311 test-py313 test-blender45 test-blender53 test-pip-editable
 BPY_LTS := 4.5.15
 BPY_LATEST := 5.3.0
 PYTEST_ARGS ?=
@@ -92,6 +94,14 @@ test-blender45:
 test-blender53:
 	@$(call require_python,3.13,$(PYTHON313))
 	$(MAKE) --no-print-directory test-venv VENV=.venv-blender53 PYTHON="$(PYTHON313)" BPY=$(BPY_LATEST) TESTS=tests/blender
+
+test-pip-editable:
+	@$(call require_python,3.11,$(PYTHON311))
+	@tmp=$$(mktemp -d) && trap 'rm -rf "$$tmp"' EXIT && \
+	"$(PYTHON311)" -m venv "$$tmp/venv" && \
+	"$$tmp/venv/bin/python" -m pip install -q -e . && \
+	cd "$$tmp" && "$$tmp/venv/bin/python" -c "import mlx3d._core, mlx3d; print('pip install -e .: mlx3d._core from', mlx3d._core.__file__)" && \
+	"$$tmp/venv/bin/python" -m mlx3d --help > /dev/null && echo "pip install -e .: python -m mlx3d runs"
 
 # The tests of one venv (VENV, PYTHON, BPY as above; TESTS: pytest paths).
 TESTS ?=
