@@ -14,17 +14,22 @@ PYTHON311 ?= $(call find_python,3.11)
 PYTHON313 ?= $(call find_python,3.13)
 
 # The venv the other targets use (`make demo`, `make bench`, ...) and the exact
-# bpy (Blender as a Python module, for tests/blender) installed into it with the
-# package and its [test] extra. Without BPY=, the pin follows the venv's Python:
-# 5.0.1 (Blender 5.0, numpy 1.26) for 3.11, 5.2.3 (numpy 2.x) for 3.13.
+# bpy (Blender as a Python module, for tests/blender) and numpy installed into it
+# with the package and its [test] extra. Without BPY=/NUMPY=, the pins follow the
+# venv's Python: bpy 5.0.1 with numpy 1.26.4 (as Blender 4.5 and 5.0 ship) for
+# 3.11, bpy 5.2.3 with numpy 2.5.5 (Blender 5.1+ ship numpy 2) for 3.13.
 PYTHON ?= $(PYTHON311)
 VENV ?= .venv
 PY := $(VENV)/bin/python
+PY_VERSION := $(shell $(if $(wildcard $(PY)),$(PY),$(or $(PYTHON),false)) -c 'import sys; print("%d.%d" % sys.version_info[:2])' 2>/dev/null)
 BPY_3.11 := 5.0.1
 BPY_3.13 := 5.2.3
-BPY ?= $(BPY_$(shell $(if $(wildcard $(PY)),$(PY),$(or $(PYTHON),false)) -c 'import sys; print("%d.%d" % sys.version_info[:2])' 2>/dev/null))
-# The stamp names the bpy pin, so a venv is reinstalled when its pin changes.
-STAMP := $(VENV)/.mlx3d-installed-bpy$(BPY)
+NUMPY_3.11 := 1.26.4
+NUMPY_3.13 := 2.5.5
+BPY ?= $(BPY_$(PY_VERSION))
+NUMPY ?= $(NUMPY_$(PY_VERSION))
+# The stamp names the pins, so a venv is reinstalled when one changes.
+STAMP := $(VENV)/.mlx3d-installed-bpy$(BPY)-numpy$(NUMPY)
 # CMake build directory of the editable install. Venvs of the same Python would
 # otherwise share build/{wheel_tag}, and an editable _core links to the MLX of
 # the venv that configured it, so every venv but .venv builds under its own name.
@@ -137,13 +142,13 @@ extension: $(STAMP)
 # extension builds against the pinned mlx in this venv, and edited C++ sources
 # rebuild on the next import (editable.rebuild; off in pyproject.toml because an
 # isolated `pip install -e .` deletes the tools a rebuild needs).
-# bpy is installed in the same pip run as the package, so numpy satisfies both.
+# bpy and numpy are installed in the same pip run as the package, so all agree.
 $(STAMP): pyproject.toml CMakeLists.txt
-	@test -n "$(BPY)" || { echo "make: no bpy pin for $(VENV): its Python ($(or $(wildcard $(PY)),$(PYTHON),none found)) is not 3.11 or 3.13; pass PYTHON=/path/to/python3.X or BPY=X.Y.Z" >&2; exit 1; }
+	@test -n "$(BPY)" -a -n "$(NUMPY)" || { echo "make: no bpy/numpy pin for $(VENV): its Python ($(or $(wildcard $(PY)),$(PYTHON),none found)) is not 3.11 or 3.13; pass PYTHON=/path/to/python3.X, or BPY=X.Y.Z and NUMPY=X.Y.Z" >&2; exit 1; }
 	@test -x $(PY) || test -n "$(PYTHON)" || { echo "make: no Python to create $(VENV) with: pass PYTHON=/path/to/python3.11" >&2; exit 1; }
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -c "import subprocess, sys, tomllib; reqs = tomllib.load(open('pyproject.toml', 'rb'))['build-system']['requires']; subprocess.check_call([sys.executable, '-m', 'pip', 'install', '-q', *reqs])"
-	$(PY) -m pip install -q --no-build-isolation -C build-dir=$(BUILD_DIR) -C editable.rebuild=true -e ".[test]" "bpy==$(BPY)"
+	$(PY) -m pip install -q --no-build-isolation -C build-dir=$(BUILD_DIR) -C editable.rebuild=true -e ".[test]" "bpy==$(BPY)" "numpy==$(NUMPY)"
 	rm -f $(VENV)/.mlx3d-installed*
 	touch $@
