@@ -67,7 +67,8 @@ def _child(args) -> None:
     background = BACKGROUNDS[args.background]
     dataset = load_dataset(args.data[0])
     config = TrainerConfig(method=method, steps=milestones[-1], max_gaussians=args.max_gaussians, background=background,
-                           bilateral_grid=variant == "grid", init_random_points=args.random_points)
+                           bilateral_grid=variant == "grid", init_random_points=args.random_points,
+                           opaque_background=None if args.opaque_background == "same" else args.opaque_background)
     start = initial_state(dataset, config)
     for note in start.notes:
         print(f"[{label}] {note}", file=sys.stderr, flush=True)
@@ -231,6 +232,8 @@ def main() -> int:
     parser.add_argument("--random-points", type=int, default=100_000, metavar="N",
                         help="scenes without points start from N random ones (default 100000, as the 3DGS reference)")
     parser.add_argument("--background", choices=("black", "white"), default="white", help="colour behind the renders and images with alpha (default white)")
+    parser.add_argument("--opaque-background", choices=("random", "same"), default="random",
+                        help="behind training renders of opaque photos: random (the trainer's default) or the same as --background")
     parser.add_argument("--jobs", type=int, default=1, help="runs trained at once, the cores split between them (default 1)")
     parser.add_argument("--out", default=os.path.join("bench", "out", "train"), metavar="DIR", help="worst-view PNGs and results.json (default bench/out/train)")
     parser.add_argument("--markdown", metavar="PATH", help="also write the table here")
@@ -293,7 +296,7 @@ def main() -> int:
         scene, folder, method, variant = key
         with slots:
             cmd = [sys.executable, os.path.abspath(__file__), folder, "--child", method, "--scene", scene, "--variant", variant,
-                   "--background", args.background, "--out", args.out]
+                   "--background", args.background, "--opaque-background", args.opaque_background, "--out", args.out]
             cmd += ["--steps", str(args.steps)] if args.steps is not None else ["--milestones", args.milestones]
             if args.max_gaussians is not None:
                 cmd += ["--max-gaussians", str(args.max_gaussians)]
@@ -339,7 +342,7 @@ def main() -> int:
     steps = f"{milestones[-1]:,} steps" if len(milestones) == 1 else f"milestones {', '.join(f'{m:,}' for m in milestones)}"
     cap = f"cap {args.max_gaussians:,} Gaussians" if args.max_gaussians is not None else "each method's default Gaussian budget"
     header = "\n".join([
-        f"Training on {', '.join(s for s, _ in scenes)}: {steps}, {args.background} background, {cap}; {len(runs)} run{'s' if len(runs) != 1 else ''} in {elapsed / 60:.1f} min",
+        f"Training on {', '.join(s for s, _ in scenes)}: {steps}, {args.background} background ({args.opaque_background} behind opaque photos), {cap}; {len(runs)} run{'s' if len(runs) != 1 else ''} in {elapsed / 60:.1f} min",
         "",
         f"Machine: {_machine_line(jobs)}.",
         "",
@@ -349,7 +352,7 @@ def main() -> int:
     os.makedirs(args.out, exist_ok=True)
     with open(os.path.join(args.out, "results.json"), "w") as f:
         json.dump({"machine": _machine_line(jobs), "platform": platform.platform(), "load": load.summary(), "jobs": jobs,
-                   "milestones": milestones, "background": args.background, "max_gaussians": args.max_gaussians,
+                   "milestones": milestones, "background": args.background, "opaque_background": args.opaque_background, "max_gaussians": args.max_gaussians,
                    "seconds": elapsed, "rows": rows}, f, indent=2)
     emit(table, args.markdown)
     return 1 if failed or any(refused.values()) else 0

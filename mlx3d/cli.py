@@ -236,9 +236,10 @@ def cmd_train(args) -> None:
     print(f"{args.data}: {len(dataset.train)} training and {len(dataset.test)} test views")
     out_dir = os.path.dirname(os.path.abspath(args.out))
     config = TrainerConfig(
-        method=args.method, steps=args.steps, max_gaussians=args.max_gaussians, background=_background_arg(args.background),
+        method=args.method, steps=args.steps, max_gaussians=args.max_gaussians, background=args.background,
         seed=args.seed, checkpoint_every=args.checkpoint_every, checkpoint_dir=out_dir, bilateral_grid=args.bilateral_grid,
         init_random_points=args.random_points, init_background_points=args.background_points,
+        opaque_background=None if args.opaque_background == "same" else args.opaque_background,
     )
     if args.resume:
         trainer = GaussianTrainer.load_checkpoint(args.resume, config)
@@ -437,6 +438,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a dataset without points starts from N random points in a cube around what the cameras look at (default 100000)")
     p.add_argument("--background-points", type=int, default=None, metavar="N",
                    help="N points on a far sphere seed a backdrop (default: mcmc on opaque photos only; 0: none)")
+    p.add_argument("--opaque-background", choices=("random", "black", "white", "same"), default="random",
+                   help="behind training renders when the photos are opaque (no alpha): random (a colour per step, "
+                        "so the model cannot go transparent; default) or a fixed colour; same: --background")
 
     p = add("eval", cmd_eval, "PSNR and SSIM of a splat PLY on a dataset's held-out views, plain and colour-corrected (CC: after the best affine colour map per view); the worst view; side-by-side renders.")
     p.add_argument("model", metavar="MODEL.ply")

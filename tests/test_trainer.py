@@ -405,3 +405,60 @@ def test_training_with_densification_is_deterministic():
     assert a["means"].shape[0] > 60  # densification ran
     for k in a:
         np.testing.assert_array_equal(a[k], b[k])
+
+
+# ------------------------------------------------------------------ background behind opaque photos
+def _folder_dataset(folder, cams, images):
+    """A nerfstudio folder of these (H, W, 3 or 4) float images, all training views."""
+    import json
+
+    from PIL import Image
+
+    from mlx3d.datasets import load_dataset
+
+    frames = []
+    for i, (cam, img) in enumerate(zip(cams, images)):
+        Image.fromarray((np.clip(img, 0, 1) * 255).round().astype(np.uint8)).save(folder / f"f{i}.png")
+        frames.append({"file_path": f"f{i}.png", "transform_matrix": cam.to_opengl_c2w().tolist()})
+    c = cams[0]
+    meta = {"camera_model": "PINHOLE", "fl_x": c.fx, "fl_y": c.fy, "cx": c.cx, "cy": c.cy, "w": c.width, "h": c.height,
+            "frames": frames, "train_filenames": [f["file_path"] for f in frames], "test_filenames": []}
+    (folder / "transforms.json").write_text(json.dumps(meta))
+    return load_dataset(folder)
+
+
+def test_opaque_photos_leave_the_model_no_transparent_escape(tmp_path):
+    """Photos of a grey wall, trained over a grey background: with that background fixed, a transparent
+    model already matches them; with the default random background behind opaque photos it must cover
+    every pixel itself."""
+    _, cams, _ = small_problem()
+    grey = (0.5, 0.5, 0.5)
+    dataset = _folder_dataset(tmp_path, cams, [np.full((c.height, c.width, 3), 0.5, np.float32) for c in cams])
+    rng = np.random.default_rng(0)
+    points = rng.uniform(-1.5, 1.5, (400, 3)).astype(np.float32)
+
+    def mean_alpha(model):
+        return np.mean([float(mx.mean(model.render(c)["alpha"])) for c in cams])
+
+    coverage = {}
+    for opaque_background in (None, "random"):
+        start = GaussianModel.from_points(points, np.full((400, 3), 0.5), sh_degree=0, initial_opacity=0.02)
+        coverage["start"] = mean_alpha(start)
+        trainer = GaussianTrainer(start, TrainerConfig(steps=300, densify_from=10_000, background=grey, opaque_background=opaque_background),
+                                  scene_extent=3.0)
+        assert trainer.training_background(dataset) == (grey if opaque_background is None else "random")
+        trainer.fit(dataset)
+        coverage[opaque_background] = mean_alpha(trainer.model)
+    assert coverage["start"] < 0.5 and coverage["random"] > 0.9, coverage
+    assert coverage[None] < coverage["start"] + 0.02, coverage  # nothing asked it to cover the wall
+
+
+def test_photos_with_alpha_train_over_the_configured_background(tmp_path):
+    model, cams, targets = small_problem()
+    rgba = [np.concatenate([t, np.where(t.sum(-1, keepdims=True) > 0.05, 1.0, 0.0)], -1) for t in targets]
+    dataset = _folder_dataset(tmp_path, cams, rgba)
+    trainer = GaussianTrainer(model, TrainerConfig(steps=5, background="white"), scene_extent=3.0)
+    assert trainer.training_background(dataset) == "white"
+    assert trainer.background_colour(trainer.training_background(dataset)) == (1.0, 1.0, 1.0)
+    with pytest.raises(ValueError, match="opaque_background"):
+        TrainerConfig(opaque_background="grey")

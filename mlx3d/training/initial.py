@@ -200,9 +200,10 @@ def initial_state(dataset, config, sh_degree: int = 3) -> InitialState:
         points = points[keep]
         colours = None if colours is None else colours[keep]
 
+    opaque = opaque_photos(dataset)
     background = config.init_background_points
     if background is None:
-        background = max(1000, min(len(points) // 4, 20_000)) if config.method == "mcmc" and opaque_photos(dataset) else 0
+        background = max(1000, min(len(points) // 4, 20_000)) if config.method == "mcmc" and opaque else 0
     if background > 0 and (cap is None or len(points) < cap):
         if cap is not None:
             background = min(background, cap - len(points))
@@ -236,4 +237,22 @@ def initial_state(dataset, config, sh_degree: int = 3) -> InitialState:
             f"MCMC growth: +{config.mcmc_growth:.0%} every {config.densify_every} steps from step {config.densify_from} "
             f"to {config.densify_until}, relocating Gaussians below opacity {config.mcmc_min_opacity:g}"
         )
+    spec = training_background(config, opaque)
+    if spec is config.opaque_background:
+        notes.append(f"training background: {_describe(spec)} (the photos are opaque; opaque_background)")
+    else:
+        notes.append(f"training background: {_describe(spec)} (background)")
     return InitialState(model, replace(config, max_gaussians=cap), notes)
+
+
+def training_background(config, opaque: bool):
+    """The background spec training renders use: ``config.opaque_background`` when the training
+    photos are ``opaque`` (see ``opaque_photos``) and it is set, else ``config.background``."""
+    return config.opaque_background if opaque and config.opaque_background is not None else config.background
+
+
+def _describe(spec) -> str:
+    if spec == "random":
+        return "random, a new colour every step"
+    return spec if isinstance(spec, str) else "(" + ", ".join(f"{float(c):g}" for c in spec) + ")"
+

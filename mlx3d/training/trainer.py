@@ -51,6 +51,10 @@ class TrainerConfig:
     lambda_dssim: float = 0.2
     background: object = None  # 'black' | 'white' | 'random' | (r, g, b); None: white_background's
     white_background: bool = False  # background 'white' when `background` is not given
+    # behind training renders when the photos are opaque (no alpha): 'random' draws a colour per step, so no part
+    # of the model can go transparent and let the background (or a per-image grid over it) stand in for the scene;
+    # None: `background`, as for photos with alpha
+    opaque_background: object = "random"
     antialias: bool = False
     projection: str = "auto"  # 'auto' | 'ewa' | 'ut'
     sh_increase_every: int = 1000  # raise the active SH degree every this many steps
@@ -117,6 +121,12 @@ class TrainerConfig:
             raise ValueError(f"steps must be >= 1, got {self.steps}")
         if self.background is None:
             self.background = "white" if self.white_background else "black"
+        for name in ("background", "opaque_background"):
+            value = getattr(self, name)
+            if value is None and name == "opaque_background" or value in ("black", "white", "random"):
+                continue
+            if isinstance(value, str) or len(value) != 3:
+                raise ValueError(f"{name} must be 'black', 'white', 'random' or (r, g, b), got {value!r}")
         if self.lr_means_max_steps is not None and self.lr_means_max_steps < 1:
             raise ValueError(f"lr_means_max_steps must be >= 1 (or None: steps), got {self.lr_means_max_steps}")
         if self.mcmc_noise_lr < 0 or self.mcmc_noise_scale < 0:
@@ -187,6 +197,7 @@ class GaussianTrainer:
         self.step_count = 0
         self.active_sh_degree = 0
         self.rng = np.random.default_rng(self.config.seed)
+        self._opaque_dataset, self._opaque = None, False  # training_background's cache
         self.optimizer = Adam(self.learning_rates())
         self._reset_stats()
         self.opacity_resets = 0
@@ -230,9 +241,10 @@ class GaussianTrainer:
         self.grad_count = np.zeros(n)
         self.max_radii = np.zeros(n)
 
-    def background_colour(self) -> tuple:
-        """The (r,g,b) background for the next step ('random' draws a new colour)."""
-        bg = self.config.background
+    def background_colour(self, spec=None) -> tuple:
+        """The (r,g,b) background for the next step: ``spec`` or the config's ``background``
+        ('black' | 'white' | 'random', which draws a new colour, | (r, g, b))."""
+        bg = self.config.background if spec is None else spec
         if bg == "black":
             return (0.0, 0.0, 0.0)
         if bg == "white":
@@ -399,12 +411,13 @@ class GaussianTrainer:
             from .initial import image_pixels, mcmc_budget
 
             self.config = replace(self.config, max_gaussians=mcmc_budget(len(self.model), image_pixels(dataset)))
+        spec = self.training_background(dataset)
         history = []
         for i in range(steps):
             if should_stop is not None and should_stop():
                 break
             index = train[int(self.rng.integers(len(train)))]
-            colour = self.background_colour()  # the target is composited on the colour the render uses
+            colour = self.background_colour(spec)  # the target is composited on the colour the render uses
             image, weight = dataset.load_image(index, background=colour, rng=self.rng)
             info = self.step(dataset.frames[index].camera, image, weight, background=colour, image_index=index)
             history.append(info)
@@ -413,6 +426,15 @@ class GaussianTrainer:
             if progress is not None:
                 progress(i + 1, steps, info)
         return history
+
+    def training_background(self, dataset):
+        """The background spec training steps on ``dataset`` use: ``opaque_background`` when its
+        training photos are opaque (see ``initial.opaque_photos``; checked once per dataset), else ``background``."""
+        from .initial import opaque_photos, training_background
+
+        if self._opaque_dataset is not dataset:  # opaque_photos reads a few images: once per dataset
+            self._opaque_dataset, self._opaque = dataset, self.config.opaque_background is not None and opaque_photos(dataset)
+        return training_background(self.config, self._opaque)
 
     # ------------------------------------------------------------------ checkpoints
     def save_checkpoint(self, path) -> None:
