@@ -26,11 +26,12 @@ from dataclasses import dataclass
 import mlx.core as mx
 import numpy as np
 
-from ..splatting.sh import MAX_SH_DEGREE, eval_sh
+from ..splatting.sh import MAX_SH_DEGREE
 from . import geometry_channels
 from .binning import TILE_SIZE, Bins, bin_tiles
 from .projection import project_ewa, project_ut
 from .rasterize import BACKENDS, CHUNK_SIZE, composite, composite_features, resolve_backend
+from .sh_color import sh_colors
 
 PROJECTIONS = ("auto", "ewa", "ut")
 
@@ -217,8 +218,7 @@ def render_gaussians(
     ran = []
     proj, opac, bins = _project_and_bin(camera, means, quats, scales, opacities, plan.projection, plan.antialias, blur, tile_size, ran)
     if plan.sh_degree is not None:
-        centre = mx.array(camera.center, dtype=mx.float32)
-        rgb = mx.maximum(eval_sh(plan.sh_degree, sh, means - centre), 0.0)
+        rgb = sh_colors(sh, means, camera.center, plan.sh_degree, plan.backend)
         ran.append(f"eval_sh_degree_{plan.sh_degree}")
     else:
         rgb = colors
