@@ -87,7 +87,7 @@ def _profile(trainer, camera, target, repeats: int) -> dict:
     from mlx3d.render.binning import bin_tiles
     from mlx3d.render.projection import project_ewa
     from mlx3d.render.rasterize import composite
-    from mlx3d.splatting.sh import eval_sh
+    from mlx3d.render.sh_color import sh_colors
     from mlx3d.training.metrics import photometric_loss
 
     p = trainer.model.params
@@ -95,8 +95,7 @@ def _profile(trainer, camera, target, repeats: int) -> dict:
     sh = mx.concatenate([p["sh_dc"], p["sh_rest"]], axis=1)
     proj = project_ewa(camera, means, quats, scales)
     bins = bin_tiles(proj.means2d, proj.radii, proj.depths, camera.width, camera.height, conics=proj.conics, opacities=opac)
-    centre = mx.array(camera.center, dtype=mx.float32)
-    rgb = mx.maximum(eval_sh(3, sh, means - centre), 0.0)
+    rgb = sh_colors(sh, means, camera.center, 3, "cpu")
     mx.eval(proj.means2d, proj.conics, rgb)
     image = composite(proj.means2d, proj.conics, rgb, opac, bins, camera.width, camera.height, mx.zeros(3), "cpu")[0]
     mx.eval(image)
@@ -114,7 +113,7 @@ def _profile(trainer, camera, target, repeats: int) -> dict:
 
     def sh_eval():
         def f(s, m):
-            return mx.maximum(eval_sh(3, s, m - centre), 0.0)
+            return sh_colors(s, m, camera.center, 3, "cpu")
         mx.eval(mx.vjp(f, [sh, means], [cot(rgb)]))
 
     def binning():
