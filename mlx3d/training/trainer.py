@@ -311,9 +311,10 @@ class GaussianTrainer:
 
         grid_in = self.grid_optimizer.current(self.bilateral, image_index) if use_grid else mx.zeros((1,))
         (loss, out), (grads, grad2d, grad_grid) = mx.value_and_grad(loss_fn, argnums=(0, 1, 2))(params, mx.zeros((n, 2)), grid_in)
-        mx.eval(loss, grads, grad2d, grad_grid)
+        finite = mx.all(mx.stack([mx.all(mx.isfinite(g)) for g in grads.values()]))  # one pass, evaluated with the step
+        mx.eval(loss, grads, grad2d, grad_grid, finite)
         loss_value = float(loss)
-        if not math.isfinite(loss_value) or not all(bool(mx.all(mx.isfinite(g))) for g in grads.values()):
+        if not math.isfinite(loss_value) or not bool(finite):
             raise TrainingError(f"step {self.step_count + 1}: the loss or a gradient is not finite (loss {loss_value}); parameters left at the last good step")
 
         ran = out["ran"] + ["adam"]
