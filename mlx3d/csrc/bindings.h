@@ -12,5 +12,6 @@ void bind_rasterize(nanobind::module_& m);
 void bind_sh_color(nanobind::module_& m);
 void bind_adam(nanobind::module_& m);
 void bind_projection(nanobind::module_& m);
+void bind_photometric(nanobind::module_& m);
 
 }  // namespace mlx3d

@@ -287,7 +287,7 @@ class GaussianTrainer:
                 image = self.bilateral.apply(image, image_index, grid)
                 out = dict(out, image=image)
                 ran.append("bilateral_grid")
-            loss = photometric_loss(image, target, c.lambda_dssim, mask)  # skips SSIM when lambda_dssim is 0
+            loss = photometric_loss(image, target, c.lambda_dssim, mask, backend=r.backend)  # skips SSIM when lambda_dssim is 0
             ran += ["loss_l1", "loss_dssim"] if c.lambda_dssim > 0 else ["loss_l1"]
             if "depth_variance" in terms:
                 out["depth_variance_loss"] = depth_variance_loss(out["depth_variance"], out["alpha"], c.geometry_min_alpha, self.scene_extent)
