@@ -95,7 +95,12 @@ def outdoor(tmp_path_factory):
 
 
 def _held_out(dataset, method, **overrides):
-    config = TrainerConfig(method=method, steps=STEPS, sh_increase_every=200, densify_from=100, densify_until=600, densify_every=50, **overrides)
+    # Both methods train over the black these photos show around nothing: this test compares the density
+    # methods. The default behind opaque photos, a random colour per step, is ahead for both at the
+    # benchmark scenes' 3,000 steps (README), but after 700 steps here it still costs MCMC's backdrop
+    # more (held-out 19.9 vs 21.8 dB) than vanilla (20.8 vs 21.6 dB).
+    config = TrainerConfig(method=method, steps=STEPS, sh_increase_every=200, densify_from=100, densify_until=600, densify_every=50,
+                           opaque_background=None, **overrides)
     start = initial_state(dataset, config, sh_degree=1)
     trainer = GaussianTrainer(start.model, start.config, scene_extent=dataset.scene_extent())
     trainer.fit(dataset)
