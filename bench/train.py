@@ -232,8 +232,8 @@ def main() -> int:
     parser.add_argument("--random-points", type=int, default=100_000, metavar="N",
                         help="scenes without points start from N random ones (default 100000, as the 3DGS reference)")
     parser.add_argument("--background", choices=("black", "white"), default="white", help="colour behind the renders and images with alpha (default white)")
-    parser.add_argument("--opaque-background", choices=("random", "same"), default="random",
-                        help="behind training renders of opaque photos: random (the trainer's default) or the same as --background")
+    parser.add_argument("--opaque-background", choices=("auto", "random", "same"), default="auto",
+                        help="behind training renders of opaque photos: auto (the trainer's default), random, or the same as --background")
     parser.add_argument("--jobs", type=int, default=1, help="runs trained at once, the cores split between them (default 1)")
     parser.add_argument("--out", default=os.path.join("bench", "out", "train"), metavar="DIR", help="worst-view PNGs and results.json (default bench/out/train)")
     parser.add_argument("--markdown", metavar="PATH", help="also write the table here")

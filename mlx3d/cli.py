@@ -438,9 +438,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a dataset without points starts from N random points in a cube around what the cameras look at (default 100000)")
     p.add_argument("--background-points", type=int, default=None, metavar="N",
                    help="N points on a far sphere seed a backdrop (default: mcmc on opaque photos only; 0: none)")
-    p.add_argument("--opaque-background", choices=("random", "black", "white", "same"), default="random",
-                   help="behind training renders when the photos are opaque (no alpha): random (a colour per step, "
-                        "so the model cannot go transparent; default) or a fixed colour; same: --background")
+    p.add_argument("--opaque-background", choices=("auto", "random", "black", "white", "same"), default="auto",
+                   help="behind training renders when the photos are opaque (no alpha): random (a colour per step, so the "
+                        "model cannot go transparent), a fixed colour, or same: --background; auto (default): random when "
+                        "the run seeds a backdrop (mcmc, --background-points), else same")
 
     p = add("eval", cmd_eval, "PSNR and SSIM of a splat PLY on a dataset's held-out views, plain and colour-corrected (CC: after the best affine colour map per view); the worst view; side-by-side renders.")
     p.add_argument("model", metavar="MODEL.ply")

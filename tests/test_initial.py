@@ -176,9 +176,10 @@ def test_mlx3d_train_prints_its_defaults_and_trains_a_scene_without_points(tmp_p
     assert "initial opacity 0.5, scale 0.1" in printed
     assert "MCMC budget: 3,000 Gaussians" in printed  # twice the 500 + 1,000 backdrop points
     assert "+5% every 100 steps from step 500 to 25000" in printed
-    assert "training background: random, a new colour every step (the photos are opaque" in printed
+    assert "training background: random, a new colour every step (the photos are opaque and the backdrop covers the frame" in printed
     assert main(["train", str(folder), "--out", str(out), "--steps", "2", "--random-points", "300"]) == 0
     printed = capsys.readouterr().out
     assert "initial opacity 0.1, scale 1" in printed and "densification: every 100 steps from step 500 to 15000" in printed
+    assert "training background: black (background)" in printed  # vanilla seeds no backdrop: nothing to cover the frame with
     assert main(["train", str(folder), "--out", str(out), "--steps", "1", "--random-points", "300", "--opaque-background", "same", "--background", "white"]) == 0
     assert "training background: white (background)" in capsys.readouterr().out

@@ -490,6 +490,18 @@ def test_opaque_photos_leave_the_model_no_transparent_escape(tmp_path):
     assert coverage[None] < coverage["start"] + 0.02, coverage  # nothing asked it to cover the wall
 
 
+def test_random_background_by_default_where_a_backdrop_was_seeded(tmp_path):
+    from mlx3d.training.initial import initial_state
+
+    _, cams, targets = small_problem()
+    dataset = _folder_dataset(tmp_path, cams, targets)  # opaque photos
+    for method, backdrop, expected in (("mcmc", None, "random"), ("vanilla", None, "white"), ("vanilla", 200, "random"), ("mcmc", 0, "white")):
+        start = initial_state(dataset, TrainerConfig(method=method, background="white", init_background_points=backdrop, init_random_points=300))
+        trainer = GaussianTrainer(start.model, start.config, scene_extent=3.0)
+        assert trainer.training_background(dataset) == expected, (method, backdrop)
+        assert (start.config.init_background_points > 0) == (expected == "random")
+
+
 def test_photos_with_alpha_train_over_the_configured_background(tmp_path):
     model, cams, targets = small_problem()
     rgba = [np.concatenate([t, np.where(t.sum(-1, keepdims=True) > 0.05, 1.0, 0.0)], -1) for t in targets]

@@ -204,6 +204,7 @@ def initial_state(dataset, config, sh_degree: int = 3) -> InitialState:
     background = config.init_background_points
     if background is None:
         background = max(1000, min(len(points) // 4, 20_000)) if config.method == "mcmc" and opaque else 0
+    seeded = 0
     if background > 0 and (cap is None or len(points) < cap):
         if cap is not None:
             background = min(background, cap - len(points))
@@ -215,6 +216,8 @@ def initial_state(dataset, config, sh_degree: int = 3) -> InitialState:
             points = np.concatenate([points, bg_points])
             colours = np.concatenate([rgb, bg_colours])
             notes.append(f"background: {len(bg_points):,} points on a sphere of radius {radius:.3g} (the photos are opaque)")
+            seeded = len(bg_points)
+    config = replace(config, init_background_points=seeded)  # what was seeded: decides the training background
 
     model = GaussianModel.from_points(points, colours, sh_degree=sh_degree, initial_opacity=config.init_opacity, seed=seed)
     if config.init_scale != 1.0:
@@ -238,17 +241,23 @@ def initial_state(dataset, config, sh_degree: int = 3) -> InitialState:
             f"to {config.densify_until}, relocating Gaussians below opacity {config.mcmc_min_opacity:g}"
         )
     spec = training_background(config, opaque)
-    if spec is config.opaque_background:
-        notes.append(f"training background: {_describe(spec)} (the photos are opaque; opaque_background)")
-    else:
+    if spec is config.background:
         notes.append(f"training background: {_describe(spec)} (background)")
+    else:
+        why = "the photos are opaque" + (" and the backdrop covers the frame" if config.opaque_background == "auto" else "")
+        notes.append(f"training background: {_describe(spec)} ({why}; opaque_background)")
     return InitialState(model, replace(config, max_gaussians=cap), notes)
 
 
 def training_background(config, opaque: bool):
-    """The background spec training renders use: ``config.opaque_background`` when the training
-    photos are ``opaque`` (see ``opaque_photos``) and it is set, else ``config.background``."""
-    return config.opaque_background if opaque and config.opaque_background is not None else config.background
+    """The background spec training renders use. With ``opaque`` training photos (see
+    ``opaque_photos``): ``config.opaque_background``, where 'auto' means 'random' when the run
+    seeded a backdrop (``init_background_points`` > 0 as ``initial_state`` returns it) and
+    ``background`` otherwise. Photos with alpha: ``background``."""
+    spec = config.opaque_background
+    if spec == "auto":
+        spec = "random" if (config.init_background_points or 0) > 0 else None
+    return spec if opaque and spec is not None else config.background
 
 
 def _describe(spec) -> str:

@@ -53,8 +53,9 @@ class TrainerConfig:
     white_background: bool = False  # background 'white' when `background` is not given
     # behind training renders when the photos are opaque (no alpha): 'random' draws a colour per step, so no part
     # of the model can go transparent and let the background (or a per-image grid over it) stand in for the scene;
-    # None: `background`, as for photos with alpha
-    opaque_background: object = "random"
+    # 'auto': 'random' when the run seeded a backdrop to cover the frame with (init_background_points), else
+    # `background` (an object shot on a plain backdrop may leave it transparent); None: `background`
+    opaque_background: object = "auto"
     antialias: bool = False
     projection: str = "auto"  # 'auto' | 'ewa' | 'ut'
     sh_increase_every: int = 1000  # raise the active SH degree every this many steps
@@ -123,10 +124,11 @@ class TrainerConfig:
             self.background = "white" if self.white_background else "black"
         for name in ("background", "opaque_background"):
             value = getattr(self, name)
-            if value is None and name == "opaque_background" or value in ("black", "white", "random"):
+            if name == "opaque_background" and value in (None, "auto") or value in ("black", "white", "random"):
                 continue
             if isinstance(value, str) or len(value) != 3:
-                raise ValueError(f"{name} must be 'black', 'white', 'random' or (r, g, b), got {value!r}")
+                extra = ", 'auto', None" if name == "opaque_background" else ""
+                raise ValueError(f"{name} must be 'black', 'white', 'random'{extra} or (r, g, b), got {value!r}")
         if self.lr_means_max_steps is not None and self.lr_means_max_steps < 1:
             raise ValueError(f"lr_means_max_steps must be >= 1 (or None: steps), got {self.lr_means_max_steps}")
         if self.mcmc_noise_lr < 0 or self.mcmc_noise_scale < 0:
