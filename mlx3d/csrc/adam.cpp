@@ -28,7 +28,7 @@ using namespace nb::literals;
 namespace mlx3d {
 namespace {
 
-constexpr int64_t kBlock = 1 << 16;  // floats per work item
+constexpr int64_t kBlock = 1 << 16;  // at least this many floats per thread
 
 struct AdamScalars {
   float lr, b1, one_minus_b1, b2, one_minus_b2, eps, c1, c2;
@@ -36,10 +36,8 @@ struct AdamScalars {
 
 void run_adam(const float* p, const float* g, const float* m, const float* v, float* p_out, float* m_out, float* v_out,
               int64_t n, AdamScalars s, int num_threads) {
-  const int blocks = static_cast<int>((n + kBlock - 1) / kBlock);
-  parallel_items(0, blocks, resolve_threads(num_threads, blocks), [&](int blk, int) {
-    const int64_t hi = std::min<int64_t>(n, (blk + 1) * kBlock);
-    for (int64_t i = int64_t(blk) * kBlock; i < hi; ++i) {
+  parallel_ranges(n, resolve_threads(num_threads, static_cast<int>((n + kBlock - 1) / kBlock)), [=](int64_t lo, int64_t hi) {
+    for (int64_t i = lo; i < hi; ++i) {
       const float gi = g[i];
       const float mi = s.b1 * m[i] + s.one_minus_b1 * gi;
       const float vi = s.b2 * v[i] + s.one_minus_b2 * (gi * gi);

@@ -51,9 +51,10 @@ struct Image {
 // dst = zero-padded "same" separable filter of src with the symmetric `taps`; tmp: scratch of src's size.
 void blur(const float* src, float* dst, float* tmp, Image im, const std::vector<float>& taps, int threads) {
   const int r = static_cast<int>(taps.size()) / 2, rowlen = im.w * im.c;
-  const int blocks = (im.h + kRows - 1) / kRows;
-  parallel_items(0, blocks, threads, [&](int b, int) {  // vertical pass
-    for (int i = b * kRows; i < std::min(im.h, (b + 1) * kRows); ++i) {
+  const float* t = taps.data();
+  parallel_ranges(im.h, threads, [=](int64_t lo, int64_t hi) {  // vertical pass
+    const std::vector<float> taps(t, t + 2 * r + 1);
+    for (int i = int(lo); i < int(hi); ++i) {
       float* out = tmp + size_t(i) * rowlen;
       const float* mid = src + size_t(i) * rowlen;
       for (int j = 0; j < rowlen; ++j) out[j] = taps[r] * mid[j];
@@ -73,10 +74,11 @@ void blur(const float* src, float* dst, float* tmp, Image im, const std::vector<
   });
   // horizontal pass on each row copied into a zero-padded scratch row (branch-free, vectorisable)
   const int pad = r * im.c;
-  std::vector<std::vector<float>> rows(threads, std::vector<float>(rowlen + 2 * pad, 0.0f));
-  parallel_items(0, blocks, threads, [&](int b, int id) {
-    float* row = rows[id].data();
-    for (int i = b * kRows; i < std::min(im.h, (b + 1) * kRows); ++i) {
+  parallel_ranges(im.h, threads, [=](int64_t lo, int64_t hi) {
+    const std::vector<float> taps(t, t + 2 * r + 1);
+    std::vector<float> scratch(rowlen + 2 * pad, 0.0f);
+    float* row = scratch.data();
+    for (int i = int(lo); i < int(hi); ++i) {
       std::copy(tmp + size_t(i) * rowlen, tmp + size_t(i + 1) * rowlen, row + pad);
       float* out = dst + size_t(i) * rowlen;
       const float* centre = row + pad;
@@ -106,26 +108,31 @@ void run_loss(const float* x, const float* y, const float* w, Image im, float la
   const double inv_w = 1.0 / std::max(wsum, kWeightFloor);
   std::vector<float> prod(n), tmp(n), mu_x(n), mu_y(n), e_xx(n), e_yy(n), e_xy(n);
   auto fill = [&](auto f) {
-    parallel_items(0, blocks, threads, [&](int b, int) {
-      for (size_t i = size_t(b) * kRows * rowlen; i < std::min(n, size_t(b + 1) * kRows * rowlen); ++i) prod[i] = f(i);
+    float* out = prod.data();
+    parallel_ranges(int64_t(n), threads, [=](int64_t lo, int64_t hi) {
+      for (int64_t i = lo; i < hi; ++i) out[i] = f(i);
     });
   };
   blur(x, mu_x.data(), tmp.data(), im, taps, threads);
   blur(y, mu_y.data(), tmp.data(), im, taps, threads);
-  fill([&](size_t i) { return x[i] * x[i]; });
+  fill([x](int64_t i) { return x[i] * x[i]; });
   blur(prod.data(), e_xx.data(), tmp.data(), im, taps, threads);
-  fill([&](size_t i) { return y[i] * y[i]; });
+  fill([y](int64_t i) { return y[i] * y[i]; });
   blur(prod.data(), e_yy.data(), tmp.data(), im, taps, threads);
-  fill([&](size_t i) { return x[i] * y[i]; });
+  fill([x, y](int64_t i) { return x[i] * y[i]; });
   blur(prod.data(), e_xy.data(), tmp.data(), im, taps, threads);
   // per pixel: the loss terms, and g ∂S/∂(μx, E[x²], E[xy]) in place of μy, E[y²] and E[xy]'s copies
   std::vector<double> row_l1(im.h, 0.0), row_ssim(im.h, 0.0);
   float* d_mu = prod.data();
   float* d_xx = tmp.data();
-  std::vector<float> d_xy(n);
+  std::vector<float> d_xy_buf(n);
+  float* d_xy = d_xy_buf.data();
   const float inv_c = 1.0f / im.c;
-  parallel_items(0, blocks, threads, [&](int b, int) {
-    for (int i = b * kRows; i < std::min(im.h, (b + 1) * kRows); ++i) {
+  const float *pmx = mu_x.data(), *pmy = mu_y.data(), *pxx = e_xx.data(), *pyy = e_yy.data(), *pxy = e_xy.data();
+  double *pl1 = row_l1.data(), *pss = row_ssim.data();
+  parallel_ranges(im.h, threads, [=](int64_t lo, int64_t hi) {
+    const float *mu_x = pmx, *mu_y = pmy, *e_xx = pxx, *e_yy = pyy, *e_xy = pxy;
+    for (int i = int(lo); i < int(hi); ++i) {
       double l1 = 0.0, ssim = 0.0;
       for (int xj = 0; xj < im.w; ++xj) {
         const int p = i * im.w + xj;
@@ -149,8 +156,8 @@ void run_loss(const float* x, const float* y, const float* w, Image im, float la
         l1 += double(wp) * (lp * inv_c);
         ssim += double(wp) * (sp * inv_c);
       }
-      row_l1[i] = l1;
-      row_ssim[i] = ssim;
+      pl1[i] = l1;
+      pss[i] = ssim;
     }
   });
   double l1 = 0.0, ssim = 0.0;
@@ -159,10 +166,14 @@ void run_loss(const float* x, const float* y, const float* w, Image im, float la
   // back through the filter (self-adjoint); mu_x, e_xx, e_xy are free now
   blur(d_mu, mu_x.data(), e_yy.data(), im, taps, threads);
   blur(d_xx, e_xx.data(), e_yy.data(), im, taps, threads);
-  blur(d_xy.data(), e_xy.data(), e_yy.data(), im, taps, threads);
+  blur(d_xy, e_xy.data(), e_yy.data(), im, taps, threads);
   const float l1_scale = static_cast<float>((1.0 - lambda) * inv_w) * inv_c;
-  parallel_items(0, blocks, threads, [&](int b, int) {
-    for (size_t q = size_t(b) * kRows * rowlen; q < std::min(n, size_t(b + 1) * kRows * rowlen); ++q) {
+  const float *bmu = mu_x.data(), *bxx = e_xx.data(), *bxy = e_xy.data();
+  const int channels = im.c;
+  parallel_ranges(int64_t(n), threads, [=](int64_t lo, int64_t hi) {
+    const float *mu_x = bmu, *e_xx = bxx, *e_xy = bxy;
+    const Image im{0, 0, channels};
+    for (int64_t q = lo; q < hi; ++q) {
       const float diff = x[q] - y[q];
       const float sign = diff > 0.0f ? 1.0f : (diff < 0.0f ? -1.0f : 0.0f);
       const float wp = w ? w[q / im.c] : 1.0f;

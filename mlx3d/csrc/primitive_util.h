@@ -36,6 +36,22 @@ void parallel_items(int t0, int t1, int threads, Fn&& fn) {
   for (auto& th : pool) th.join();
 }
 
+// Runs fn(lo, hi) on `threads` contiguous ranges covering [0, n), each thread with its own copy of
+// fn (capture by value): for per-element work. Sharing the callable's captures between threads through
+// references, as parallel_items does, measured 1.5x slower per thread here than one thread alone on the
+// SH and projection kernels; copies scale.
+template <typename Fn>
+void parallel_ranges(int64_t n, int threads, const Fn& fn) {
+  threads = static_cast<int>(std::max<int64_t>(1, std::min<int64_t>(threads, n)));
+  const int64_t step = (n + threads - 1) / threads;
+  std::vector<std::thread> pool;
+  pool.reserve(threads - 1);
+  for (int t = 1; t < threads; ++t) pool.emplace_back(fn, std::min(n, t * step), std::min(n, (t + 1) * step));
+  Fn own = fn;
+  own(int64_t(0), std::min(n, step));
+  for (auto& th : pool) th.join();
+}
+
 // Allocates the outputs and registers every array with the stream's CPU command encoder, which it returns.
 inline mlx::core::cpu::CommandEncoder& prepare_outputs(const mlx::core::Stream& stream, const std::vector<mlx::core::array>& inputs,
                                                        std::vector<mlx::core::array>& outputs) {

@@ -30,7 +30,7 @@ using namespace nb::literals;
 namespace mlx3d {
 namespace {
 
-constexpr int kBlock = 4096;  // Gaussians per work item
+constexpr int kBlock = 4096;  // at least this many Gaussians per thread
 
 inline PmGaussian gaussian_at(const float* means, const float* quats, const float* scales, int64_t i) {
   PmGaussian g;
@@ -40,11 +40,9 @@ inline PmGaussian gaussian_at(const float* means, const float* quats, const floa
 }
 
 template <typename Fn>
-void for_each_gaussian(int64_t n, int num_threads, Fn&& fn) {
-  const int blocks = static_cast<int>((n + kBlock - 1) / kBlock);
-  parallel_items(0, blocks, resolve_threads(num_threads, blocks), [&](int blk, int) {
-    const int64_t hi = std::min<int64_t>(n, int64_t(blk + 1) * kBlock);
-    for (int64_t i = int64_t(blk) * kBlock; i < hi; ++i) fn(i);
+void for_each_gaussian(int64_t n, int num_threads, const Fn& fn) {
+  parallel_ranges(n, resolve_threads(num_threads, static_cast<int>((n + kBlock - 1) / kBlock)), [fn](int64_t lo, int64_t hi) {
+    for (int64_t i = lo; i < hi; ++i) fn(i);
   });
 }
 
@@ -102,7 +100,7 @@ class ProjectEwaBackward : public ProjectBase {
     float *dm = outputs[0].data<float>(), *dq = outputs[1].data<float>(), *ds = outputs[2].data<float>();
     const int64_t n = inputs[0].shape(0);
     encoder.dispatch([=, cam = cam_, threads = num_threads_]() {
-      for_each_gaussian(n, threads, [&](int64_t i) {
+      for_each_gaussian(n, threads, [=](int64_t i) {
         const PmGaussian g = gaussian_at(means, quats, scales, i);
         const PmState s = pm_forward(cam, g);
         const PmGrad d = pm_backward(cam, g, s, g2[2 * i], g2[2 * i + 1], gc[3 * i], gc[3 * i + 1], gc[3 * i + 2], gd[i], gk[i]);
@@ -136,7 +134,7 @@ class ProjectEwaForward : public ProjectBase {
     int32_t* radii = outputs[2].data<int32_t>();
     const int64_t n = inputs[0].shape(0);
     encoder.dispatch([=, cam = cam_, threads = num_threads_]() {
-      for_each_gaussian(n, threads, [&](int64_t i) {
+      for_each_gaussian(n, threads, [=](int64_t i) {
         const PmState s = pm_forward(cam, gaussian_at(means, quats, scales, i));
         m2[2 * i] = s.means2d[0];
         m2[2 * i + 1] = s.means2d[1];

@@ -29,7 +29,7 @@ using namespace nb::literals;
 namespace mlx3d {
 namespace {
 
-constexpr int kBlock = 4096;  // Gaussians per work item
+constexpr int kBlock = 4096;  // at least this many Gaussians per thread
 
 struct ShInputs {
   const float* sh;      // (N, K, 3)
@@ -64,10 +64,8 @@ inline ShDir direction_of(const ShInputs& in, int64_t i) {
 }
 
 void run_forward(ShInputs in, int num_threads, float* rgb) {
-  const int blocks = static_cast<int>((in.n + kBlock - 1) / kBlock);
-  parallel_items(0, blocks, resolve_threads(num_threads, blocks), [&](int blk, int) {
-    const int64_t hi = std::min<int64_t>(in.n, int64_t(blk + 1) * kBlock);
-    for (int64_t i = int64_t(blk) * kBlock; i < hi; ++i) {
+  parallel_ranges(in.n, resolve_threads(num_threads, static_cast<int>((in.n + kBlock - 1) / kBlock)), [in, rgb](int64_t lo, int64_t hi) {
+    for (int64_t i = lo; i < hi; ++i) {
       const ShDir u = direction_of(in, i);
       const ShBasis b = sh_basis(in.degree, u.x, u.y, u.z);
       float c[3];
@@ -78,11 +76,10 @@ void run_forward(ShInputs in, int num_threads, float* rgb) {
 }
 
 void run_backward(ShInputs in, const float* cot, int num_threads, float* d_sh, float* d_means) {
-  const int blocks = static_cast<int>((in.n + kBlock - 1) / kBlock);
   const int bases = sh_num_bases(in.degree);
-  parallel_items(0, blocks, resolve_threads(num_threads, blocks), [&](int blk, int) {
-    const int64_t hi = std::min<int64_t>(in.n, int64_t(blk + 1) * kBlock);
-    for (int64_t i = int64_t(blk) * kBlock; i < hi; ++i) {
+  parallel_ranges(in.n, resolve_threads(num_threads, static_cast<int>((in.n + kBlock - 1) / kBlock)),
+                  [in, cot, d_sh, d_means, bases](int64_t lo, int64_t hi) {
+    for (int64_t i = lo; i < hi; ++i) {
       const ShDir u = direction_of(in, i);
       const ShBasis b = sh_basis(in.degree, u.x, u.y, u.z);
       float c[3], g[3];
