@@ -278,18 +278,21 @@ def test_plan_runs_only_needed_stages():
         plan_render(cam)
 
 
-def test_sh_evaluation_stops_at_the_requested_degree(monkeypatch):
+@pytest.mark.parametrize("backend", ["reference", "cpu"])
+def test_sh_evaluation_stops_at_the_requested_degree(monkeypatch, backend):
     import mlx3d.render.pipeline as pipeline
 
     seen = []
-    real = pipeline.eval_sh
-    monkeypatch.setattr(pipeline, "eval_sh", lambda degree, sh, dirs: seen.append(degree) or real(degree, sh, dirs))
+    real = pipeline.sh_colors
+    monkeypatch.setattr(pipeline, "sh_colors", lambda sh, means, centre, degree, be: seen.append(degree) or real(sh, means, centre, degree, be))
     cam = camera()
     s = as_mx(scene(10, seed=16))
     sh3 = mx.array(np.random.default_rng(1).normal(size=(10, 16, 3)).astype(np.float32))
-    render_gaussians(cam, s["means"], s["quats"], s["scales"], s["opacities"], sh=sh3, sh_degree=2, backend="reference")
-    render_gaussians(cam, s["means"], s["quats"], s["scales"], s["opacities"], colors=s["colors"], backend="reference")
+    two = render_gaussians(cam, s["means"], s["quats"], s["scales"], s["opacities"], sh=sh3, sh_degree=2, backend=backend)["image"]
+    render_gaussians(cam, s["means"], s["quats"], s["scales"], s["opacities"], colors=s["colors"], backend=backend)
     assert seen == [2]
+    cut = render_gaussians(cam, s["means"], s["quats"], s["scales"], s["opacities"], sh=sh3[:, :9], sh_degree=3, backend=backend)["image"]
+    np.testing.assert_array_equal(np.array(two), np.array(cut))  # degree 2 ignores coefficients 9..15
 
 
 def test_depth_and_features():

@@ -2,19 +2,19 @@
 //
 // A Gaussian with half-extents (ex, ey) > 0 pixels around its mean covers the tiles
 // floor((m - e) / tile) .. floor((m + e) / tile) on each axis, clipped to the image.
-// Bucket fill in Gaussian order, then a stable sort of each tile's bucket by depth
-// (so equal depths keep index order), threaded over tiles. The numpy construction in
-// tests/test_render_binning.py is the oracle.
+// The Gaussians are sorted once by (depth, index) (depths as order-preserving integer
+// keys, so NaN sorts last and -0 equals 0); filling each tile's bucket in that order
+// leaves every bucket sorted by depth, then index, with no per-tile sort. The numpy
+// construction in tests/test_render_binning.py is the oracle.
 #include <nanobind/nanobind.h>
 #include <nanobind/ndarray.h>
 #include <nanobind/stl/pair.h>
 
 #include <algorithm>
-#include <atomic>
 #include <cmath>
 #include <cstdint>
+#include <cstring>
 #include <memory>
-#include <thread>
 #include <vector>
 
 #include "bindings.h"
@@ -33,6 +33,15 @@ struct Rect {
   int32_t x0, x1, y0, y1;  // [x0, x1) x [y0, y1)
 };
 
+// An unsigned key with the order of the float depth (negative < -0 = 0 < positive < NaN).
+uint32_t depth_key(float v) {
+  if (v == 0.0f) v = 0.0f;  // -0 sorts with 0
+  uint32_t bits;
+  std::memcpy(&bits, &v, sizeof(bits));
+  if (std::isnan(v)) return 0xffffffffu;
+  return (bits & 0x80000000u) ? ~bits : (bits | 0x80000000u);
+}
+
 int32_t clamp_tile(double v, int32_t hi) {
   if (!(v > 0)) return 0;  // also NaN
   return v >= hi ? hi : static_cast<int32_t>(v);
@@ -46,7 +55,7 @@ IntOut to_numpy(std::vector<int32_t>&& v) {
 }
 
 std::pair<IntOut, IntOut> bin_tiles(const Vec2& means2d, const Vec2& extents, const Vec1& depths, int width, int height,
-                                    int tile_size, int num_threads) {
+                                    int tile_size) {
   const int64_t n = static_cast<int64_t>(means2d.shape(0));
   if (static_cast<int64_t>(extents.shape(0)) != n || static_cast<int64_t>(depths.shape(0)) != n)
     throw nb::value_error("bin_tiles: means2d, extents and depths must have the same number of rows");
@@ -84,26 +93,19 @@ std::pair<IntOut, IntOut> bin_tiles(const Vec2& means2d, const Vec2& extents, co
     if (total > INT32_MAX) throw std::overflow_error("bin_tiles: more than 2^31 tile intersections");
     offsets[num_tiles] = static_cast<int32_t>(total);
     ids.resize(total);
+    // Gaussians that touch a tile, by (depth key, index): unique 64-bit keys, so any sort is stable.
+    std::vector<uint64_t> order;
+    order.reserve(n);
+    for (int64_t i = 0; i < n; ++i)
+      if (rects[i].x1 > rects[i].x0 && rects[i].y1 > rects[i].y0) order.push_back((uint64_t(depth_key(d[i])) << 32) | uint64_t(i));
+    std::sort(order.begin(), order.end());
     std::vector<int64_t> cursor(offsets.begin(), offsets.end() - 1);
-    for (int64_t i = 0; i < n; ++i) {
+    for (const uint64_t key : order) {
+      const int32_t i = static_cast<int32_t>(key & 0xffffffffu);
       const Rect& r = rects[i];
       for (int32_t ty = r.y0; ty < r.y1; ++ty)
-        for (int32_t tx = r.x0; tx < r.x1; ++tx) ids[cursor[static_cast<int64_t>(ty) * tiles_x + tx]++] = static_cast<int32_t>(i);
+        for (int32_t tx = r.x0; tx < r.x1; ++tx) ids[cursor[static_cast<int64_t>(ty) * tiles_x + tx]++] = i;
     }
-    int threads = num_threads > 0 ? num_threads : static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
-    threads = static_cast<int>(std::max<int64_t>(1, std::min<int64_t>(threads, num_tiles)));
-    std::atomic<int64_t> next{0};
-    auto work = [&]() {
-      for (int64_t t; (t = next.fetch_add(64)) < num_tiles;) {
-        for (int64_t u = t; u < std::min(num_tiles, t + 64); ++u)
-          std::stable_sort(ids.begin() + offsets[u], ids.begin() + offsets[u + 1],
-                           [d](int32_t a, int32_t b) { return d[a] < d[b]; });
-      }
-    };
-    std::vector<std::thread> pool;
-    for (int t = 1; t < threads; ++t) pool.emplace_back(work);
-    work();
-    for (auto& th : pool) th.join();
   }
   return {to_numpy(std::move(offsets)), to_numpy(std::move(ids))};
 }
@@ -112,7 +114,6 @@ std::pair<IntOut, IntOut> bin_tiles(const Vec2& means2d, const Vec2& extents, co
 
 void bind_binning(nb::module_& m) {
   m.def("bin_tiles", &bin_tiles, "means2d"_a, "extents"_a, "depths"_a, "width"_a, "height"_a, "tile_size"_a = 16,
-        "num_threads"_a = 0,
         "Tile intersections of Gaussians with (N,2) half-extents in pixels (0 = culled): returns\n"
         "(tile_offsets int32 (tiles+1,), flatten_ids int32 (M,)) sorted by tile, depth, index.");
 }

@@ -17,7 +17,7 @@ namespace mx = mlx::core;
 using namespace nb::literals;
 
 NB_MODULE(_core, m) {
-  m.doc() = "Compiled kernels of mlx3d (k-nearest neighbours, Gaussian affine maps, the rasterizer MLX primitives).";
+  m.doc() = "Compiled kernels of mlx3d (k-nearest neighbours, Gaussian affine maps, the MLX primitives of the projection, SH colour, rasterizer, training loss and Adam).";
 
   // mlx.core registers the array type; import it first so that the shared
   // "mlx" domain knows it before any function here is called.
@@ -36,4 +36,8 @@ NB_MODULE(_core, m) {
   mlx3d::bind_gaussian_affine(m);
   mlx3d::bind_binning(m);
   mlx3d::bind_rasterize(m);
+  mlx3d::bind_sh_color(m);
+  mlx3d::bind_adam(m);
+  mlx3d::bind_projection(m);
+  mlx3d::bind_photometric(m);
 }

@@ -55,6 +55,7 @@
 #include <vector>
 
 #include "bindings.h"
+#include "primitive_util.h"
 #include "mlx/allocator.h"
 #include "mlx/array.h"
 #include "mlx/backend/cpu/encoder.h"
@@ -944,27 +945,6 @@ BackwardTileFn pick_backward(int channels) {
   return pick_channels(base, channels);
 }
 
-int resolve_threads(int num_threads, int work_items) {
-  int threads = num_threads > 0 ? num_threads : static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
-  return std::max(1, std::min(threads, work_items));
-}
-
-// Runs fn(item, thread id) for items [t0, t1) on `threads` threads, taking
-// items from a shared counter.
-template <typename Fn>
-void parallel_items(int t0, int t1, int threads, Fn&& fn) {
-  std::atomic<int> next(t0);
-  auto worker = [&](int id) {
-    for (int t = next.fetch_add(1); t < t1; t = next.fetch_add(1)) fn(t, id);
-  };
-  threads = std::max(1, std::min(threads, t1 - t0));
-  std::vector<std::thread> pool;
-  pool.reserve(threads - 1);
-  for (int i = 1; i < threads; ++i) pool.emplace_back(worker, i);
-  worker(0);
-  for (auto& th : pool) th.join();
-}
-
 // Runs fn(tile, scratch) for tiles [t0, t1) on `threads` threads.
 template <typename Fn>
 void parallel_tiles(int t0, int t1, int threads, std::vector<Scratch>& scratch, Fn&& fn) {
@@ -1053,15 +1033,6 @@ void run_backward(Inputs in, const Geometry& geo, int num_threads, const Backwar
 
 // ------------------------------------------------------------------ checks
 
-std::string shape_str(const mx::array& a) {
-  std::ostringstream os;
-  os << "(";
-  for (int i = 0; i < static_cast<int>(a.ndim()); ++i) os << (i ? ", " : "") << a.shape(i);
-  if (a.ndim() == 1) os << ",";
-  os << ")";
-  return os.str();
-}
-
 void check(bool ok, const std::string& msg) {
   if (!ok) throw std::invalid_argument("rasterize: " + msg);
 }
@@ -1079,15 +1050,6 @@ Inputs input_pointers(const std::vector<mx::array>& inputs) {
   return in;
 }
 
-// Allocates the outputs and registers every array with the stream's CPU command encoder, which it returns.
-auto& prepare(const mx::Stream& stream, const std::vector<mx::array>& inputs, std::vector<mx::array>& outputs) {
-  for (auto& o : outputs) o.set_data(mx::allocator::malloc(o.nbytes()));
-  auto& encoder = mx::cpu::get_command_encoder(stream);
-  for (const auto& a : inputs) encoder.set_input_array(a);
-  for (auto& o : outputs) encoder.set_output_array(o);
-  return encoder;
-}
-
 // ---------------------------------------------------------------- primitives
 
 class RasterizeBackward : public mx::Primitive {
@@ -1099,7 +1061,7 @@ class RasterizeBackward : public mx::Primitive {
   //         last, final_T, dL/daccum (H,W,C), dL/dalpha (H,W)
   // outputs: dL/dmeans2d, dL/dconics, dL/dfeatures, dL/dopacities
   void eval_cpu(const std::vector<mx::array>& inputs, std::vector<mx::array>& outputs) override {
-    auto& encoder = prepare(stream(), inputs, outputs);
+    auto& encoder = prepare_outputs(stream(), inputs, outputs);
     Inputs in = input_pointers(inputs);
     for (int i = 6; i < 10; ++i)
       if (!inputs[i].flags().row_contiguous) throw std::runtime_error("rasterize: internal error: non-contiguous input");
@@ -1149,7 +1111,7 @@ class RasterizeForward : public mx::Primitive {
       : mx::Primitive(stream), width_(width), height_(height), tile_(tile), num_threads_(num_threads) {}
 
   void eval_cpu(const std::vector<mx::array>& inputs, std::vector<mx::array>& outputs) override {
-    auto& encoder = prepare(stream(), inputs, outputs);
+    auto& encoder = prepare_outputs(stream(), inputs, outputs);
     Inputs in = input_pointers(inputs);
     const Geometry geo = make_geometry(width_, height_, tile_, inputs[0].shape(0), inputs[2].shape(1), inputs[5].size());
     ForwardOut out{outputs[0].data<float>(), outputs[1].data<float>(), outputs[2].data<int32_t>(),

@@ -26,11 +26,12 @@ from dataclasses import dataclass
 import mlx.core as mx
 import numpy as np
 
-from ..splatting.sh import MAX_SH_DEGREE, eval_sh
+from ..splatting.sh import MAX_SH_DEGREE
 from . import geometry_channels
 from .binning import TILE_SIZE, Bins, bin_tiles
 from .projection import project_ewa, project_ut
 from .rasterize import BACKENDS, CHUNK_SIZE, composite, composite_features, resolve_backend
+from .sh_color import sh_colors
 
 PROJECTIONS = ("auto", "ewa", "ut")
 
@@ -119,10 +120,12 @@ def plan_render(
     return RenderPlan(method, degree, depth, bool(antialias), resolve_backend(backend), variance, bool(render_normals), bool(planar_depth) and depth)
 
 
-def _project(camera, means, quats, scales, opacities, method: str, antialias: bool, blur, ran: list):
+def _project(camera, means, quats, scales, opacities, method: str, antialias: bool, blur, ran: list, backend: str):
     """Projection ('ewa' or 'ut') and the opacities it leaves (times the antialias compensation)."""
-    project = project_ut if method == "ut" else project_ewa
-    proj = project(camera, means, quats, scales, blur=blur, antialias=antialias)
+    if method == "ut":
+        proj = project_ut(camera, means, quats, scales, blur=blur, antialias=antialias)
+    else:
+        proj = project_ewa(camera, means, quats, scales, blur=blur, antialias=antialias, backend=backend)
     ran.append(f"project_{method}")
     if antialias:
         opacities = opacities * proj.compensation
@@ -130,10 +133,10 @@ def _project(camera, means, quats, scales, opacities, method: str, antialias: bo
     return proj, opacities
 
 
-def _project_and_bin(camera, means, quats, scales, opacities, method: str, antialias: bool, blur, tile_size, ran=None):
+def _project_and_bin(camera, means, quats, scales, opacities, method: str, antialias: bool, blur, tile_size, backend: str, ran=None):
     """Projection, antialias compensation, tile binning (extents tightened by the opacities)."""
     ran = [] if ran is None else ran
-    proj, opac = _project(camera, means, quats, scales, opacities, method, antialias, blur, ran)
+    proj, opac = _project(camera, means, quats, scales, opacities, method, antialias, blur, ran, backend)
     bins = bin_tiles(proj.means2d, proj.radii, proj.depths, camera.width, camera.height, tile_size, proj.conics, opac)
     ran.append("bin_tiles")
     return proj, opac, bins
@@ -215,10 +218,9 @@ def render_gaussians(
     del refine_tiles  # see the docstring
     plan = plan_render(camera, colors, sh, sh_degree, projection, antialias, render_depth, backend, render_depth_variance, render_normals, planar_depth)
     ran = []
-    proj, opac, bins = _project_and_bin(camera, means, quats, scales, opacities, plan.projection, plan.antialias, blur, tile_size, ran)
+    proj, opac, bins = _project_and_bin(camera, means, quats, scales, opacities, plan.projection, plan.antialias, blur, tile_size, plan.backend, ran)
     if plan.sh_degree is not None:
-        centre = mx.array(camera.center, dtype=mx.float32)
-        rgb = mx.maximum(eval_sh(plan.sh_degree, sh, means - centre), 0.0)
+        rgb = sh_colors(sh, means, camera.center, plan.sh_degree, plan.backend)
         ran.append(f"eval_sh_degree_{plan.sh_degree}")
     else:
         rgb = colors
@@ -278,7 +280,7 @@ def render_gaussian_features(
     features = features if isinstance(features, mx.array) else mx.array(features)
     if features.ndim != 2:
         raise ValueError(f"features must have shape (N, C), got {tuple(features.shape)}")
-    proj, opac, bins = _project_and_bin(camera, means, quats, scales, opacities, method, bool(antialias), blur, tile_size)
+    proj, opac, bins = _project_and_bin(camera, means, quats, scales, opacities, method, bool(antialias), blur, tile_size, resolve_backend(backend))
     out = composite_features(proj.means2d, proj.conics, features, opac, bins, camera.width, camera.height, background, normalize, backend, chunk_size)
     out.update(_projection_outputs(proj))
     return out
@@ -306,7 +308,7 @@ def render_gaussian_depth(
     colour pass, and can use surfel planes.)
     """
     method = _projection_method(camera, projection)
-    proj, opac, bins = _project_and_bin(camera, means, quats, scales, opacities, method, bool(antialias), blur, tile_size)
+    proj, opac, bins = _project_and_bin(camera, means, quats, scales, opacities, method, bool(antialias), blur, tile_size, resolve_backend(backend))
     out = composite_features(proj.means2d, proj.conics, proj.depths[:, None], opac, bins, camera.width, camera.height, normalize=True, backend=backend)
     out["depth"] = out.pop("features")[..., 0]
     out.update(_projection_outputs(proj))
@@ -337,7 +339,7 @@ def render_gaussians_reference(
     differentiable by MLX autodiff.
     """
     method = _projection_method(camera, projection)
-    proj, opac = _project(camera, means, quats, scales, opacities, method, bool(antialias), blur, [])
+    proj, opac = _project(camera, means, quats, scales, opacities, method, bool(antialias), blur, [], "reference")
     bins = _one_tile(proj.radii, proj.depths, camera.width, camera.height)
     out = composite_features(proj.means2d, proj.conics, colors, opac, bins, camera.width, camera.height, background, backend="reference")
     return {"image": out["features"], "alpha": out["alpha"], "final_T": out["final_T"]}

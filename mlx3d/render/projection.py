@@ -32,6 +32,7 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import mlx.core as mx
+import numpy as np
 
 from ..transforms import quaternion_to_matrix
 
@@ -143,8 +144,31 @@ def _finish(camera, means2d, cov2d, depths, valid, blur, antialias, det_orig=Non
     return Projection(means2d, conics, radii, depths, compensation)
 
 
-def project_ewa(camera, means, quats, scales, blur: float = 0.3, antialias: bool = False) -> Projection:
-    """EWA projection. means (N,3) world, quats (N,4) w,x,y,z (any length), scales (N,3) std-devs."""
+def project_ewa(camera, means, quats, scales, blur: float = 0.3, antialias: bool = False, backend: str = "auto") -> Projection:
+    """EWA projection. means (N,3) world, quats (N,4) w,x,y,z (any length), scales (N,3) std-devs.
+
+    backend: 'cpu' runs the threaded C++ primitive (``mlx3d/csrc/projection_math.h``, with its
+    own backward pass); 'metal' and 'reference' the MLX expression below, the test oracle;
+    'auto' as ``resolve_backend``. Differentiable w.r.t. means, quats and scales either way.
+    """
+    from .rasterize import resolve_backend
+
+    if resolve_backend(backend) == "cpu":
+        from mlx3d import native
+
+        from .raster_cpu import get_num_threads
+
+        f32 = [mx.array(a, dtype=mx.float32) if not isinstance(a, mx.array) else a.astype(mx.float32) for a in (means, quats, scales)]
+        viewmat = [float(v) for v in np.asarray(camera.viewmat, np.float64).reshape(-1)]
+        m2, conics, radii, depths, comp = native.core().project_ewa(
+            *f32, viewmat, camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height, camera.near, camera.far,
+            float(blur), bool(antialias), get_num_threads())
+        return Projection(m2, conics, radii, depths, comp)
+    return _project_ewa_reference(camera, means, quats, scales, blur, antialias)
+
+
+def _project_ewa_reference(camera, means, quats, scales, blur: float, antialias: bool) -> Projection:
+    """``project_ewa`` in MLX operations (autodiff gives its gradients)."""
     rot, trans = _camera_arrays(camera)
     p = means @ rot.T + trans
     x, y, z = p[:, 0], p[:, 1], p[:, 2]

@@ -20,13 +20,17 @@ class Adam:
     not updated.
     """
 
-    def __init__(self, lrs: dict, betas=(0.9, 0.999), eps: float = 1e-15):
+    def __init__(self, lrs: dict, betas=(0.9, 0.999), eps: float = 1e-15, backend: str = "auto"):
+        from ..render.rasterize import resolve_backend
+
         self.lrs = dict(lrs)
         self.b1, self.b2 = betas
         self.eps = eps
         self.step_count = 0
         self.m: dict = {}
         self.v: dict = {}
+        # 'cpu': one threaded pass per parameter (mlx3d._core.adam_step); else the MLX expression below
+        self.backend = resolve_backend(backend)
 
     def update(self, params: dict, grads: dict) -> dict:
         """New params after one step (moments are created on first use)."""
@@ -40,10 +44,17 @@ class Adam:
                 continue
             m = self.m.get(name, mx.zeros_like(g))
             v = self.v.get(name, mx.zeros_like(g))
-            m = self.b1 * m + (1 - self.b1) * g
-            v = self.b2 * v + (1 - self.b2) * g * g
+            if self.backend == "cpu" and params[name].dtype == g.dtype == m.dtype == mx.float32:
+                from mlx3d import native
+
+                from ..render.raster_cpu import get_num_threads
+
+                out[name], m, v = native.core().adam_step(params[name], g, m, v, lr, self.b1, self.b2, self.eps, c1, c2, get_num_threads())
+            else:
+                m = self.b1 * m + (1 - self.b1) * g
+                v = self.b2 * v + (1 - self.b2) * g * g
+                out[name] = params[name] - lr * (m / c1) / (mx.sqrt(v / c2) + self.eps)
             self.m[name], self.v[name] = m, v
-            out[name] = params[name] - lr * (m / c1) / (mx.sqrt(v / c2) + self.eps)
         return out
 
     def select(self, keep: np.ndarray) -> None:

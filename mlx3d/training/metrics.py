@@ -366,15 +366,30 @@ def photometric_loss(
     window: int = 11,
     sigma: float = 1.5,
     compiled: bool = True,
+    backend: str = "reference",
 ) -> mx.array:
     """The 3DGS training loss ``(1 - lambda) * L1 + lambda * (1 - SSIM)``.
 
     ``img`` is the render, ``ref`` the ground-truth photo; ``mask`` weights both
     terms as in :func:`l1` and :func:`ssim`.  Differentiable with ``mx.grad``;
     for the training step prefer :func:`photometric_loss_and_grad` (see the
-    module docstring).
+    module docstring).  ``backend='cpu'`` (or 'auto' off Apple GPUs) computes
+    an (H, W, C) loss and its gradient in one threaded C++ pass
+    (``mlx3d/csrc/photometric.cpp``; differentiable w.r.t. ``img`` and
+    ``ref``, not the mask), which the trainer uses; 'reference' is this
+    module's MLX graph, the test oracle.
     """
     w, static = _photometric_args(img, ref, lambda_dssim, mask, window, sigma, "photometric_loss")
+    from ..render.rasterize import resolve_backend
+
+    if resolve_backend(backend) == "cpu" and img.ndim == 3 and static[0] > 0.0:  # without SSIM the graph is one pass
+        from mlx3d import native
+
+        from ..render.raster_cpu import get_num_threads
+
+        weights = None if w is None else mx.broadcast_to(w, img.shape[:2]).astype(mx.float32)
+        return native.core().photometric_loss(img.astype(mx.float32), ref.astype(mx.float32), weights, static[0],
+                                              list(_taps(window, sigma)), get_num_threads())
     return _call("photometric", img, ref, w, compiled, False, static)
 
 

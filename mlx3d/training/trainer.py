@@ -289,7 +289,7 @@ class GaussianTrainer:
                 image = self.bilateral.apply(image, image_index, grid)
                 out = dict(out, image=image)
                 ran.append("bilateral_grid")
-            loss = photometric_loss(image, target, c.lambda_dssim, mask)  # skips SSIM when lambda_dssim is 0
+            loss = photometric_loss(image, target, c.lambda_dssim, mask, backend=r.backend)  # skips SSIM when lambda_dssim is 0
             ran += ["loss_l1", "loss_dssim"] if c.lambda_dssim > 0 else ["loss_l1"]
             if "depth_variance" in terms:
                 out["depth_variance_loss"] = depth_variance_loss(out["depth_variance"], out["alpha"], c.geometry_min_alpha, self.scene_extent)
@@ -313,9 +313,10 @@ class GaussianTrainer:
 
         grid_in = self.grid_optimizer.current(self.bilateral, image_index) if use_grid else mx.zeros((1,))
         (loss, out), (grads, grad2d, grad_grid) = mx.value_and_grad(loss_fn, argnums=(0, 1, 2))(params, mx.zeros((n, 2)), grid_in)
-        mx.eval(loss, grads, grad2d, grad_grid)
+        finite = mx.all(mx.stack([mx.all(mx.isfinite(g)) for g in grads.values()]))  # one pass, evaluated with the step
+        mx.eval(loss, grads, grad2d, grad_grid, finite)
         loss_value = float(loss)
-        if not math.isfinite(loss_value) or not all(bool(mx.all(mx.isfinite(g))) for g in grads.values()):
+        if not math.isfinite(loss_value) or not bool(finite):
             raise TrainingError(f"step {self.step_count + 1}: the loss or a gradient is not finite (loss {loss_value}); parameters left at the last good step")
 
         ran = out["ran"] + ["adam"]

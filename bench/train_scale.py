@@ -1,0 +1,279 @@
+"""A training step at real-capture sizes: time per step for 1 and 2 threads, peak memory, where the time goes.
+
+The real garden SfM points and first camera of ``shared/data/test_garden.npz``
+(648x420; ``--scale 2`` for 1296x840), Gaussians from ``from_points`` (SH
+degree 3, active), and ``GaussianTrainer.step`` (vanilla, no density control
+inside the timed steps) against a target rendered from the second camera.
+``--gaussians`` above the 138,766 points repeats them with a seeded jitter of
+a tenth of their 3-NN spacing. Each case runs in a fresh process (its own peak
+RSS, its own ``MLX3D_NUM_THREADS``).
+
+``--profile`` also times each stage of the step on its own, forward and
+backward, through the same public functions the step calls (projection,
+SH evaluation, tile binning, the rasterizer, the loss, Adam, the density
+statistics), so the table says where the time goes and which stages use the
+second core. Memory bandwidth (a numpy triad on 256 MB arrays, one core) gives
+the bytes-moved floor of the per-Gaussian stages.
+
+    python bench/train_scale.py                          # the four cases of the scale table
+    python bench/train_scale.py --cases 138766:1 --threads 1,2 --profile --markdown bench/out/train_scale.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+
+from common import emit, peak_rss_mb  # bench/ is on sys.path when run as a script
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+GARDEN = os.path.join(HERE, "..", "..", "shared", "data", "test_garden.npz")
+CASES = "138766:1,1000000:2"  # gaussians:scale
+PARAMS_PER_GAUSSIAN = 59  # means 3, quats 4, scales 3, opacity 1, SH 16x3
+
+
+def _median_ms(fn, repeats: int) -> float:
+    fn()  # warm-up: first-call allocations and compilation
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    times.sort()
+    return 1000.0 * times[len(times) // 2]
+
+
+def _setup(n: int, scale: float):
+    import mlx.core as mx
+    import numpy as np
+
+    from mlx3d.cameras import Camera
+    from mlx3d.splatting import GaussianModel
+
+    data = np.load(GARDEN)
+    points, colours = data["means3d"].astype(np.float32), data["colors"]
+    rng = np.random.default_rng(0)
+    if n > len(points):
+        from mlx3d.neighbors import mean_knn_distance
+
+        spacing = np.asarray(mean_knn_distance(points, 3))[:, None]
+        reps = -(-n // len(points))
+        points = np.concatenate([points] + [points + rng.normal(0, 1, points.shape).astype(np.float32) * 0.1 * spacing for _ in range(reps - 1)])[:n]
+        colours = np.tile(colours, (reps, 1))[:n]
+    elif n < len(points):
+        keep = np.sort(rng.choice(len(points), n, replace=False))
+        points, colours = points[keep], colours[keep]
+    w, h = int(data["width"]), int(data["height"])
+    cams = [Camera(width=w, height=h, fx=float(k[0, 0]), fy=float(k[1, 1]), cx=float(k[0, 2]), cy=float(k[1, 2]), viewmat=v).scaled(scale)
+            for v, k in zip(data["viewmats"], data["Ks"])]
+    model = GaussianModel.from_points(points, colours, sh_degree=3, initial_opacity=0.5)
+    sh = np.array(model.params["sh_rest"])
+    model.params["sh_rest"] = mx.array(rng.normal(0, 0.05, sh.shape).astype(np.float32))  # degree 3 does real work
+    target = mx.clip(model.render(cams[1], background=(0, 0, 0))["image"], 0, 1)
+    mx.eval(target)
+    return model, cams[0], target
+
+
+def _profile(trainer, camera, target, repeats: int) -> dict:
+    """ms of each stage on its own (forward and backward where it has one)."""
+    import mlx.core as mx
+    import numpy as np
+
+    from mlx3d.render.binning import bin_tiles
+    from mlx3d.render.projection import project_ewa
+    from mlx3d.render.rasterize import composite
+    from mlx3d.render.sh_color import sh_colors
+    from mlx3d.training.metrics import photometric_loss
+
+    p = trainer.model.params
+    means, quats, scales, opac = p["means"], p["quats"], mx.exp(p["scales"]), mx.sigmoid(p["opacities"])
+    sh = mx.concatenate([p["sh_dc"], p["sh_rest"]], axis=1)
+    proj = project_ewa(camera, means, quats, scales)
+    bins = bin_tiles(proj.means2d, proj.radii, proj.depths, camera.width, camera.height, conics=proj.conics, opacities=opac)
+    rgb = sh_colors(sh, means, camera.center, 3, "cpu")
+    mx.eval(proj.means2d, proj.conics, rgb)
+    image = composite(proj.means2d, proj.conics, rgb, opac, bins, camera.width, camera.height, mx.zeros(3), "cpu")[0]
+    mx.eval(image)
+    rng = np.random.default_rng(1)
+
+    def cot(a):
+        return mx.array(rng.normal(0, 1, a.shape).astype(np.float32))
+
+    def projection():
+        def f(m, q, s):
+            out = project_ewa(camera, m, q, s)
+            return out.means2d, out.conics, out.depths
+        outs = f(means, quats, scales)
+        mx.eval(mx.vjp(f, [means, quats, scales], [cot(o) for o in outs]))
+
+    def sh_eval():
+        def f(s, m):
+            return sh_colors(s, m, camera.center, 3, "cpu")
+        mx.eval(mx.vjp(f, [sh, means], [cot(rgb)]))
+
+    def binning():
+        b = bin_tiles(proj.means2d, proj.radii, proj.depths, camera.width, camera.height, conics=proj.conics, opacities=opac)
+        mx.eval(b.flatten_ids, b.tile_offsets)
+
+    def raster_forward():
+        mx.eval(composite(proj.means2d, proj.conics, rgb, opac, bins, camera.width, camera.height, mx.zeros(3), "cpu")[0])
+
+    def raster_both():
+        def f(m2, c, r, o):
+            return composite(m2, c, r, o, bins, camera.width, camera.height, mx.zeros(3), "cpu")[0]
+        mx.eval(mx.vjp(f, [proj.means2d, proj.conics, rgb, opac], [cot(image)]))
+
+    def loss():
+        mx.eval(mx.value_and_grad(lambda im: photometric_loss(im, target, 0.2))(image))
+
+    grads = {k: cot(v) for k, v in p.items()}
+
+    def adam():
+        saved = (dict(trainer.optimizer.m), dict(trainer.optimizer.v), trainer.optimizer.step_count)
+        new = trainer.optimizer.update(p, grads)
+        mx.eval(new, trainer.optimizer.m, trainer.optimizer.v)
+        trainer.optimizer.m, trainer.optimizer.v, trainer.optimizer.step_count = saved
+
+    grad2d = cot(proj.means2d)
+    mx.eval(grad2d)
+
+    def stats():  # the density statistics lines of GaussianTrainer.step
+        visible = np.array(proj.radii > 0)
+        g = np.array(grad2d, dtype=np.float64) * [0.5 * camera.width, 0.5 * camera.height]
+        trainer.grad_accum[visible] += np.linalg.norm(g[visible], axis=1)
+        trainer.grad_count[visible] += 1
+        trainer.max_radii = np.maximum(trainer.max_radii, np.array(proj.radii))
+
+    out = {
+        "projection (fwd+bwd)": _median_ms(projection, repeats),
+        "SH degree 3 (fwd+bwd)": _median_ms(sh_eval, repeats),
+        "tile binning": _median_ms(binning, repeats),
+        "rasterizer forward": _median_ms(raster_forward, repeats),
+        "rasterizer fwd+bwd": _median_ms(raster_both, repeats),
+        "loss L1+D-SSIM (fwd+bwd)": _median_ms(loss, repeats),
+        "Adam (59 params)": _median_ms(adam, repeats),
+        "density statistics": _median_ms(stats, repeats),
+    }
+    out["tile entries"] = int(bins.flatten_ids.size)
+    return out
+
+
+def _bandwidth_gbs() -> float:
+    """Sustained bytes/s of c = a + b on 256 MB float32 arrays (numpy, one core): 3 arrays moved."""
+    import numpy as np
+
+    n = 64 * 1024 * 1024
+    a, b, c = np.ones(n, np.float32), np.ones(n, np.float32), np.empty(n, np.float32)
+    ms = _median_ms(lambda: np.add(a, b, out=c), 5)
+    return 3 * 4 * n / (ms / 1000.0) / 1e9
+
+
+def child(args) -> None:
+    import mlx.core as mx
+
+    from mlx3d.training import GaussianTrainer, TrainerConfig
+
+    model, camera, target = _setup(args.gaussians, args.scale)
+    config = TrainerConfig(steps=10**6, densify_from=10**6, sh_increase_every=0)
+    trainer = GaussianTrainer(model, config, scene_extent=5.0)
+    trainer.active_sh_degree = 3
+    for _ in range(2):  # warm-up: Adam moments, compilation
+        trainer.step(camera, target)
+    times = []
+    for _ in range(args.steps):
+        t0 = time.perf_counter()
+        trainer.step(camera, target)
+        times.append(time.perf_counter() - t0)
+    times.sort()
+    result = {"gaussians": len(trainer.model), "width": camera.width, "height": camera.height, "threads": args.threads_one,
+              "ms_per_step": 1000.0 * times[len(times) // 2], "peak_mb": peak_rss_mb()}
+    if args.profile:
+        result["stages"] = _profile(trainer, camera, target, max(3, args.steps))
+        result["bandwidth_gbs"] = _bandwidth_gbs()
+    mx.clear_cache()
+    print(json.dumps(result))
+
+
+def _run(gaussians: int, scale: float, threads: int, args) -> dict:
+    cmd = [sys.executable, os.path.abspath(__file__), "--child", "--gaussians", str(gaussians), "--scale", str(scale),
+           "--threads-one", str(threads), "--steps", str(args.steps)] + (["--profile"] if args.profile else [])
+    env = dict(os.environ, MLX3D_NUM_THREADS=str(threads))
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise SystemExit(f"case {gaussians}:{scale} with {threads} threads failed:\n{proc.stderr[-2000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def _machine() -> str:
+    try:
+        load = os.getloadavg()[0]
+    except OSError:
+        load = float("nan")
+    return f"{platform.machine()}, {os.cpu_count()} cores, load average {load:.1f} at the end of the run"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--cases", default=CASES, help=f"comma-separated GAUSSIANS:SCALE (default {CASES}; scale 1 = 648x420)")
+    parser.add_argument("--threads", default="1,2", help="comma-separated thread counts (default 1,2)")
+    parser.add_argument("--steps", type=int, default=5, help="timed steps per case (median reported; default 5)")
+    parser.add_argument("--profile", action="store_true", help="also time each stage of the step on its own")
+    parser.add_argument("--markdown", metavar="PATH", help="also write the tables here")
+    parser.add_argument("--json", metavar="PATH", help="also write the raw results here")
+    parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--gaussians", type=int, default=138_766, help=argparse.SUPPRESS)
+    parser.add_argument("--scale", type=float, default=1.0, help=argparse.SUPPRESS)
+    parser.add_argument("--threads-one", type=int, default=1, help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.child:
+        child(args)
+        return
+    if not os.path.exists(GARDEN):
+        raise SystemExit(f"{GARDEN} not found (the garden SfM points and cameras)")
+    if args.steps < 1:
+        parser.error("--steps must be at least 1")
+    try:
+        cases = [(int(g), float(s)) for g, s in (c.split(":") for c in args.cases.split(",") if c)]
+        threads = [int(t) for t in args.threads.split(",") if t]
+    except ValueError:
+        parser.error("--cases takes GAUSSIANS:SCALE pairs and --threads integers")
+    results = []
+    for gaussians, scale in cases:
+        for t in threads:
+            r = _run(gaussians, scale, t, args)
+            results.append(r)
+            print(f"{r['gaussians']:,} Gaussians {r['width']}x{r['height']} {t} thread(s): {r['ms_per_step']:,.0f} ms/step, "
+                  f"peak {r['peak_mb']:,.0f} MB", file=sys.stderr, flush=True)
+    lines = [f"Machine: {_machine()}; median of {args.steps} steps after 2 warm-up steps, vanilla, SH degree 3 active.", "",
+             "| Gaussians | image | threads | ms per step | speed-up vs 1 thread | peak RSS (MB) |", "|---:|---|---:|---:|---:|---:|"]
+    for r in results:
+        one = next((x for x in results if x["gaussians"] == r["gaussians"] and x["width"] == r["width"] and x["threads"] == 1), None)
+        speedup = f"{one['ms_per_step'] / r['ms_per_step']:.2f}" if one else ""
+        lines.append(f"| {r['gaussians']:,} | {r['width']}x{r['height']} | {r['threads']} | {r['ms_per_step']:,.0f} | {speedup} | {r['peak_mb']:,.0f} |")
+    if args.profile:
+        for key in sorted({(r["gaussians"], r["width"], r["height"]) for r in results}):
+            rows = [r for r in results if (r["gaussians"], r["width"], r["height"]) == key]
+            names = [k for k in rows[0]["stages"] if k != "tile entries"]
+            bw = rows[0]["bandwidth_gbs"]
+            floor = 7 * 4 * PARAMS_PER_GAUSSIAN * key[0] / (bw * 1e9) * 1000.0  # Adam: read p, g, m, v; write p, m, v
+            lines += ["", f"Stages at {key[0]:,} Gaussians, {key[1]}x{key[2]} ({rows[0]['stages']['tile entries']:,} tile entries; "
+                      f"memory bandwidth {bw:.1f} GB/s on one core, so Adam's 7 x 59 floats per Gaussian take at least {floor:.0f} ms):", "",
+                      "| stage | " + " | ".join(f"{r['threads']} thread(s) ms" for r in rows) + " | share of the step (1 thread) |",
+                      "|---|" + "---:|" * (len(rows) + 1)]
+            for name in names:
+                share = rows[0]["stages"][name] / rows[0]["ms_per_step"] if "forward" not in name or "bwd" in name else None
+                lines.append(f"| {name} | " + " | ".join(f"{r['stages'][name]:,.1f}" for r in rows) + f" | {'' if share is None else f'{share:.0%}'} |")
+            lines.append("| whole step | " + " | ".join(f"{r['ms_per_step']:,.1f}" for r in rows) + " | 100% |")
+    emit("\n".join(lines) + "\n", args.markdown)
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(results, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,274 @@
+// The 3DGS training loss (1 - λ) L1 + λ (1 - SSIM) of an (H,W,C) render against a photo, and its
+// gradient with respect to the render, as one CPU MLX primitive threaded over image rows.
+//
+// SSIM as mlx3d.training.metrics (the 3DGS definition): a separable Gaussian window (the taps
+// given), zero-padded "same" filtering of x, y, x², y², xy per channel, C1 = 0.01², C2 = 0.03²,
+// the map averaged over channels; with a mask w (H,W) both terms are w-weighted means over pixels.
+// The gradient follows from S = A1 A2 / (B1 B2) (A1 = 2 μx μy + C1, A2 = 2 σxy + C2, B1 = μx² +
+// μy² + C1, B2 = σx² + σy² + C2): the filter is self-adjoint, so
+//   dL/dx = G*(g ∂S/∂μx) + 2x G*(g ∂S/∂E[x²]) + y G*(g ∂S/∂E[xy]) + (1 - λ) w sign(x - y) / (C Σw),
+// with g = -λ w / (C Σw) per pixel. The forward pass computes the gradient too (training always
+// needs it); the vjp scales it by the cotangent. The loss is symmetric in (x, y), so the gradient
+// with respect to the photo is the same primitive with the two swapped. Every output element is
+// computed by one thread, and the loss is summed per row then over rows in order (float64), so the
+// results are bitwise identical for any thread count.
+#include <nanobind/nanobind.h>
+#include <nanobind/stl/optional.h>
+#include <nanobind/stl/vector.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <memory>
+#include <optional>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+#include "bindings.h"
+#include "mlx/array.h"
+#include "mlx/ops.h"
+#include "mlx/primitives.h"
+#include "primitive_util.h"
+
+namespace nb = nanobind;
+namespace mx = mlx::core;
+using namespace nb::literals;
+
+namespace mlx3d {
+namespace {
+
+constexpr float kC1 = 0.01f * 0.01f;
+constexpr float kC2 = 0.03f * 0.03f;
+constexpr double kWeightFloor = 1e-12;
+constexpr int kRows = 8;  // image rows per work item
+
+struct Image {
+  int h, w, c;
+  size_t size() const { return size_t(h) * w * c; }
+};
+
+// dst = zero-padded "same" separable filter of src with the symmetric `taps`; tmp: scratch of src's size.
+void blur(const float* src, float* dst, float* tmp, Image im, const std::vector<float>& taps, int threads) {
+  const int r = static_cast<int>(taps.size()) / 2, rowlen = im.w * im.c;
+  const float* t = taps.data();
+  parallel_ranges(im.h, threads, [=](int64_t lo, int64_t hi) {  // vertical pass
+    const std::vector<float> taps(t, t + 2 * r + 1);
+    for (int i = int(lo); i < int(hi); ++i) {
+      float* out = tmp + size_t(i) * rowlen;
+      const float* mid = src + size_t(i) * rowlen;
+      for (int j = 0; j < rowlen; ++j) out[j] = taps[r] * mid[j];
+      for (int k = 0; k < r; ++k) {
+        const int up = i - r + k, down = i + r - k;
+        const float t = taps[k];
+        const float* a = up >= 0 ? src + size_t(up) * rowlen : nullptr;
+        const float* d = down < im.h ? src + size_t(down) * rowlen : nullptr;
+        if (a && d)
+          for (int j = 0; j < rowlen; ++j) out[j] += t * (a[j] + d[j]);
+        else if (a)
+          for (int j = 0; j < rowlen; ++j) out[j] += t * a[j];
+        else if (d)
+          for (int j = 0; j < rowlen; ++j) out[j] += t * d[j];
+      }
+    }
+  });
+  // horizontal pass on each row copied into a zero-padded scratch row (branch-free, vectorisable)
+  const int pad = r * im.c;
+  parallel_ranges(im.h, threads, [=](int64_t lo, int64_t hi) {
+    const std::vector<float> taps(t, t + 2 * r + 1);
+    std::vector<float> scratch(rowlen + 2 * pad, 0.0f);
+    float* row = scratch.data();
+    for (int i = int(lo); i < int(hi); ++i) {
+      std::copy(tmp + size_t(i) * rowlen, tmp + size_t(i + 1) * rowlen, row + pad);
+      float* out = dst + size_t(i) * rowlen;
+      const float* centre = row + pad;
+      for (int j = 0; j < rowlen; ++j) out[j] = taps[r] * centre[j];
+      for (int k = 0; k < r; ++k) {
+        const float t = taps[k];
+        const float* a = row + k * im.c;            // offset -(r - k) pixels
+        const float* d = row + (2 * r - k) * im.c;  // offset +(r - k) pixels
+        for (int j = 0; j < rowlen; ++j) out[j] += t * (a[j] + d[j]);
+      }
+    }
+  });
+}
+
+// loss (one float) and dL/dx (H,W,C) of x against y, weights w (H,W) or null.
+void run_loss(const float* x, const float* y, const float* w, Image im, float lambda, const std::vector<float>& taps,
+              int num_threads, float* loss_out, float* grad) {
+  const size_t n = im.size();
+  const int pixels = im.h * im.w, rowlen = im.w * im.c;
+  const int blocks = (im.h + kRows - 1) / kRows;
+  const int threads = resolve_threads(num_threads, blocks);
+  double wsum = 0.0;
+  if (w)
+    for (int p = 0; p < pixels; ++p) wsum += w[p];
+  else
+    wsum = pixels;
+  const double inv_w = 1.0 / std::max(wsum, kWeightFloor);
+  std::vector<float> prod(n), tmp(n), mu_x(n), mu_y(n), e_xx(n), e_yy(n), e_xy(n);
+  auto fill = [&](auto f) {
+    float* out = prod.data();
+    parallel_ranges(int64_t(n), threads, [=](int64_t lo, int64_t hi) {
+      for (int64_t i = lo; i < hi; ++i) out[i] = f(i);
+    });
+  };
+  blur(x, mu_x.data(), tmp.data(), im, taps, threads);
+  blur(y, mu_y.data(), tmp.data(), im, taps, threads);
+  fill([x](int64_t i) { return x[i] * x[i]; });
+  blur(prod.data(), e_xx.data(), tmp.data(), im, taps, threads);
+  fill([y](int64_t i) { return y[i] * y[i]; });
+  blur(prod.data(), e_yy.data(), tmp.data(), im, taps, threads);
+  fill([x, y](int64_t i) { return x[i] * y[i]; });
+  blur(prod.data(), e_xy.data(), tmp.data(), im, taps, threads);
+  // per pixel: the loss terms, and g ∂S/∂(μx, E[x²], E[xy]) in place of μy, E[y²] and E[xy]'s copies
+  std::vector<double> row_l1(im.h, 0.0), row_ssim(im.h, 0.0);
+  float* d_mu = prod.data();
+  float* d_xx = tmp.data();
+  std::vector<float> d_xy_buf(n);
+  float* d_xy = d_xy_buf.data();
+  const float inv_c = 1.0f / im.c;
+  const float *pmx = mu_x.data(), *pmy = mu_y.data(), *pxx = e_xx.data(), *pyy = e_yy.data(), *pxy = e_xy.data();
+  double *pl1 = row_l1.data(), *pss = row_ssim.data();
+  parallel_ranges(im.h, threads, [=](int64_t lo, int64_t hi) {
+    const float *mu_x = pmx, *mu_y = pmy, *e_xx = pxx, *e_yy = pyy, *e_xy = pxy;
+    for (int i = int(lo); i < int(hi); ++i) {
+      double l1 = 0.0, ssim = 0.0;
+      for (int xj = 0; xj < im.w; ++xj) {
+        const int p = i * im.w + xj;
+        const float wp = w ? w[p] : 1.0f;
+        const float g = static_cast<float>(-lambda * wp * inv_w) * inv_c;
+        float sp = 0.0f, lp = 0.0f;
+        for (int ch = 0; ch < im.c; ++ch) {
+          const size_t q = size_t(p) * im.c + ch;
+          const float m1 = mu_x[q], m2 = mu_y[q];
+          const float s11 = e_xx[q] - m1 * m1, s22 = e_yy[q] - m2 * m2, s12 = e_xy[q] - m1 * m2;
+          const float a1 = 2.0f * m1 * m2 + kC1, a2 = 2.0f * s12 + kC2;
+          const float b1 = m1 * m1 + m2 * m2 + kC1, b2 = s11 + s22 + kC2;
+          const float den = b1 * b2, s = a1 * a2 / den;
+          sp += s;
+          lp += std::fabs(x[q] - y[q]);
+          const float ds_a1 = a2 / den, ds_a2 = a1 / den, ds_b1 = -s / b1, ds_b2 = -s / b2;
+          d_mu[q] = g * (ds_a1 * 2.0f * m2 - ds_a2 * 2.0f * m2 + ds_b1 * 2.0f * m1 - ds_b2 * 2.0f * m1);
+          d_xx[q] = g * ds_b2;
+          d_xy[q] = g * 2.0f * ds_a2;
+        }
+        l1 += double(wp) * (lp * inv_c);
+        ssim += double(wp) * (sp * inv_c);
+      }
+      pl1[i] = l1;
+      pss[i] = ssim;
+    }
+  });
+  double l1 = 0.0, ssim = 0.0;
+  for (int i = 0; i < im.h; ++i) l1 += row_l1[i], ssim += row_ssim[i];
+  *loss_out = static_cast<float>((1.0 - lambda) * l1 * inv_w + lambda * (1.0 - ssim * inv_w));
+  // back through the filter (self-adjoint); mu_x, e_xx, e_xy are free now
+  blur(d_mu, mu_x.data(), e_yy.data(), im, taps, threads);
+  blur(d_xx, e_xx.data(), e_yy.data(), im, taps, threads);
+  blur(d_xy, e_xy.data(), e_yy.data(), im, taps, threads);
+  const float l1_scale = static_cast<float>((1.0 - lambda) * inv_w) * inv_c;
+  const float *bmu = mu_x.data(), *bxx = e_xx.data(), *bxy = e_xy.data();
+  const int channels = im.c;
+  parallel_ranges(int64_t(n), threads, [=](int64_t lo, int64_t hi) {
+    const float *mu_x = bmu, *e_xx = bxx, *e_xy = bxy;
+    const Image im{0, 0, channels};
+    for (int64_t q = lo; q < hi; ++q) {
+      const float diff = x[q] - y[q];
+      const float sign = diff > 0.0f ? 1.0f : (diff < 0.0f ? -1.0f : 0.0f);
+      const float wp = w ? w[q / im.c] : 1.0f;
+      grad[q] = mu_x[q] + 2.0f * x[q] * e_xx[q] + y[q] * e_xy[q] + l1_scale * wp * sign;
+    }
+  });
+}
+
+class PhotometricLoss : public mx::Primitive {
+ public:
+  PhotometricLoss(mx::Stream stream, float lambda, std::vector<float> taps, int num_threads)
+      : mx::Primitive(stream), lambda_(lambda), taps_(std::move(taps)), num_threads_(num_threads) {}
+
+  // inputs: img (H,W,C), ref (H,W,C)[, weights (H,W)]; outputs: loss (), dloss/dimg (H,W,C)
+  void eval_cpu(const std::vector<mx::array>& inputs, std::vector<mx::array>& outputs) override {
+    auto& encoder = prepare_outputs(stream(), inputs, outputs);
+    for (const auto& a : inputs)
+      if (!a.flags().row_contiguous) throw std::runtime_error("photometric_loss: internal error: non-contiguous input");
+    const Image im{inputs[0].shape(0), inputs[0].shape(1), inputs[0].shape(2)};
+    const float *x = inputs[0].data<float>(), *y = inputs[1].data<float>();
+    const float* w = inputs.size() > 2 ? inputs[2].data<float>() : nullptr;
+    float *loss = outputs[0].data<float>(), *grad = outputs[1].data<float>();
+    encoder.dispatch([=, lambda = lambda_, taps = taps_, threads = num_threads_]() { run_loss(x, y, w, im, lambda, taps, threads, loss, grad); });
+  }
+
+  void eval_gpu(const std::vector<mx::array>&, std::vector<mx::array>&) override {
+    throw std::runtime_error("PhotometricLoss runs on the CPU only (Apple GPUs use mlx3d.training.metrics' MLX graph).");
+  }
+
+  std::vector<mx::array> vjp(const std::vector<mx::array>& primals, const std::vector<mx::array>& cotangents,
+                             const std::vector<int>& argnums, const std::vector<mx::array>& outputs) override {
+    auto s = stream();
+    std::vector<mx::array> result;
+    for (int a : argnums) {
+      if (a == 0) {
+        result.push_back(mx::multiply(cotangents[0], outputs[1], s));
+      } else if (a == 1) {  // symmetric loss: d/dref L(img, ref) = d/dfirst L(ref, img)
+        std::vector<mx::array> swapped = {primals[1], primals[0]};
+        if (primals.size() > 2) swapped.push_back(primals[2]);
+        auto other = mx::array::make_arrays({mx::Shape{}, primals[0].shape()}, {mx::float32, mx::float32},
+                                            std::make_shared<PhotometricLoss>(s, lambda_, taps_, num_threads_), swapped);
+        result.push_back(mx::multiply(cotangents[0], other[1], s));
+      } else {
+        throw std::runtime_error("photometric_loss: the gradient with respect to the mask is not implemented.");
+      }
+    }
+    return result;
+  }
+
+  std::vector<mx::array> jvp(const std::vector<mx::array>&, const std::vector<mx::array>&, const std::vector<int>&) override {
+    throw std::runtime_error("PhotometricLoss: forward-mode differentiation (jvp) is not implemented; use mx.grad / mx.vjp.");
+  }
+
+  std::pair<std::vector<mx::array>, std::vector<int>> vmap(const std::vector<mx::array>&, const std::vector<int>&) override {
+    throw std::runtime_error("PhotometricLoss: vmap is not implemented.");
+  }
+
+  std::vector<mx::Shape> output_shapes(const std::vector<mx::array>& inputs) override { return {mx::Shape{}, inputs[0].shape()}; }
+
+  const char* name() const override { return "PhotometricLoss"; }
+
+  bool is_equivalent(const mx::Primitive& other) const override {
+    const auto* o = dynamic_cast<const PhotometricLoss*>(&other);
+    return o && o->lambda_ == lambda_ && o->taps_ == taps_ && o->num_threads_ == num_threads_;
+  }
+
+ private:
+  float lambda_;
+  std::vector<float> taps_;
+  int num_threads_;
+};
+
+mx::array photometric_loss(const mx::array& img, const mx::array& ref, std::optional<mx::array> weights, float lambda,
+                           const std::vector<float>& taps, int num_threads) {
+  auto fail = [](const std::string& msg) { throw std::invalid_argument("photometric_loss: " + msg); };
+  if (img.ndim() != 3 || img.shape() != ref.shape())
+    fail("img and ref must be (H, W, C) of one shape, got " + shape_str(img) + " and " + shape_str(ref));
+  if (img.dtype() != mx::float32 || ref.dtype() != mx::float32) fail("images must be float32 (the Python wrapper casts them)");
+  if (weights && (weights->shape() != mx::Shape{img.shape(0), img.shape(1)} || weights->dtype() != mx::float32))
+    fail("weights must be float32 (H, W), got " + shape_str(*weights));
+  if (taps.empty() || taps.size() % 2 == 0) fail("taps must have an odd, positive length");
+  if (!(lambda >= 0.0f && lambda <= 1.0f)) fail("lambda_dssim must be in [0, 1]");
+  auto s = mx::default_stream(mx::Device::cpu);
+  std::vector<mx::array> inputs = {mx::contiguous(img, false, s), mx::contiguous(ref, false, s)};
+  if (weights) inputs.push_back(mx::contiguous(*weights, false, s));
+  return mx::array::make_arrays({mx::Shape{}, img.shape()}, {mx::float32, mx::float32},
+                                std::make_shared<PhotometricLoss>(s, lambda, taps, num_threads), inputs)[0];
+}
+
+}  // namespace
+
+void bind_photometric(nb::module_& m) {
+  m.def("photometric_loss", &photometric_loss, "img"_a, "ref"_a, "weights"_a.none(), "lambda_dssim"_a, "taps"_a, "num_threads"_a = 0,
+        "(1 - λ) L1 + λ (1 - SSIM) of float32 (H,W,C) images, optionally weighted per pixel (MLX primitive, CPU,\n"
+        "threaded; differentiable w.r.t. img and ref). Use mlx3d.training.metrics.photometric_loss(backend='cpu').");
+}
+
+}  // namespace mlx3d

@@ -1,0 +1,75 @@
+// Helpers shared by the CPU MLX primitives (rasterize.cpp, sh_color.cpp): threads, output
+// allocation, shape strings.
+#pragma once
+
+#include <algorithm>
+#include <atomic>
+#include <sstream>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "mlx/allocator.h"
+#include "mlx/array.h"
+#include "mlx/backend/cpu/encoder.h"
+
+namespace mlx3d {
+
+// Threads to use for `work_items` items: num_threads (0: all hardware threads), at most one per item.
+inline int resolve_threads(int num_threads, int work_items) {
+  int threads = num_threads > 0 ? num_threads : static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
+  return std::max(1, std::min(threads, work_items));
+}
+
+// Runs fn(item, thread id) for items [t0, t1) on `threads` threads, taking items from a shared counter.
+template <typename Fn>
+void parallel_items(int t0, int t1, int threads, Fn&& fn) {
+  std::atomic<int> next(t0);
+  auto worker = [&](int id) {
+    for (int t = next.fetch_add(1); t < t1; t = next.fetch_add(1)) fn(t, id);
+  };
+  threads = std::max(1, std::min(threads, t1 - t0));
+  std::vector<std::thread> pool;
+  pool.reserve(threads - 1);
+  for (int i = 1; i < threads; ++i) pool.emplace_back(worker, i);
+  worker(0);
+  for (auto& th : pool) th.join();
+}
+
+// Runs fn(lo, hi) on `threads` contiguous ranges covering [0, n), each thread with its own copy of
+// fn (capture by value): for per-element work. Sharing the callable's captures between threads through
+// references, as parallel_items does, measured 1.5x slower per thread here than one thread alone on the
+// SH and projection kernels; copies scale.
+template <typename Fn>
+void parallel_ranges(int64_t n, int threads, const Fn& fn) {
+  threads = static_cast<int>(std::max<int64_t>(1, std::min<int64_t>(threads, n)));
+  const int64_t step = (n + threads - 1) / threads;
+  std::vector<std::thread> pool;
+  pool.reserve(threads - 1);
+  for (int t = 1; t < threads; ++t) pool.emplace_back(fn, std::min(n, t * step), std::min(n, (t + 1) * step));
+  Fn own = fn;
+  own(int64_t(0), std::min(n, step));
+  for (auto& th : pool) th.join();
+}
+
+// Allocates the outputs and registers every array with the stream's CPU command encoder, which it returns.
+inline mlx::core::cpu::CommandEncoder& prepare_outputs(const mlx::core::Stream& stream, const std::vector<mlx::core::array>& inputs,
+                                                       std::vector<mlx::core::array>& outputs) {
+  for (auto& o : outputs) o.set_data(mlx::core::allocator::malloc(o.nbytes()));
+  auto& encoder = mlx::core::cpu::get_command_encoder(stream);
+  for (const auto& a : inputs) encoder.set_input_array(a);
+  for (auto& o : outputs) encoder.set_output_array(o);
+  return encoder;
+}
+
+// "(2, 3)" for a 2x3 array, "(5,)" for a vector.
+inline std::string shape_str(const mlx::core::array& a) {
+  std::ostringstream os;
+  os << "(";
+  for (int i = 0; i < static_cast<int>(a.ndim()); ++i) os << (i ? ", " : "") << a.shape(i);
+  if (a.ndim() == 1) os << ",";
+  os << ")";
+  return os.str();
+}
+
+}  // namespace mlx3d

@@ -1,0 +1,36 @@
+"""The renderer's colour stage: RGB (N,3) = max(eval_sh(degree, sh, means - centre), 0), one entry per backend.
+
+'cpu' runs ``mlx3d._core.sh_colors``, a threaded C++ MLX primitive with a
+hand-written backward pass (math in ``mlx3d/csrc/sh_math.h``, the header a
+Metal kernel would share); 'metal' and 'reference' run the pure-MLX
+reference, :func:`mlx3d.splatting.sh.eval_sh`, which is also the test oracle.
+Differentiable with respect to ``sh`` and ``means`` on every backend.
+"""
+
+from __future__ import annotations
+
+import mlx.core as mx
+
+from ..splatting.sh import eval_sh
+from .rasterize import resolve_backend
+
+__all__ = ["sh_colors"]
+
+
+def sh_colors(sh: mx.array, means: mx.array, centre, degree: int, backend: str = "auto") -> mx.array:
+    """View-dependent colour of Gaussians, clamped at 0 as in 3DGS.
+
+    sh: (N, K, 3) coefficients, K >= (degree+1)² (extra ones ignored); means:
+    (N, 3) world positions; centre: (3,) camera centre (world); degree: 0..3.
+    Returns (N, 3) float32. The gradient passes where the unclamped colour is
+    positive; the centre gets none.
+    """
+    backend = resolve_backend(backend)
+    centre = mx.array(centre, dtype=mx.float32)
+    if backend == "cpu":
+        from mlx3d import native
+
+        from .raster_cpu import get_num_threads
+
+        return native.core().sh_colors(sh.astype(mx.float32), means.astype(mx.float32), centre, int(degree), get_num_threads())
+    return mx.maximum(eval_sh(degree, sh, means - centre), 0.0)
