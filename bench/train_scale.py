@@ -129,7 +129,7 @@ def _profile(trainer, camera, target, repeats: int) -> dict:
         mx.eval(mx.vjp(f, [proj.means2d, proj.conics, rgb, opac], [cot(image)]))
 
     def loss():
-        mx.eval(mx.value_and_grad(lambda im: photometric_loss(im, target, 0.2))(image))
+        mx.eval(mx.value_and_grad(lambda im: photometric_loss(im, target, 0.2, backend="cpu"))(image))
 
     grads = {k: cot(v) for k, v in p.items()}
 
