@@ -48,9 +48,10 @@ void run_adam(const float* p, const float* g, const float* m, const float* v, fl
   });
 }
 
-class AdamStep : public mx::Primitive {
+class AdamStep : public CpuPrimitive {
  public:
-  AdamStep(mx::Stream stream, AdamScalars s, int num_threads) : mx::Primitive(stream), s_(s), num_threads_(num_threads) {}
+  AdamStep(mx::Stream stream, AdamScalars s, int num_threads)
+      : CpuPrimitive(stream, "Apple GPUs use the MLX expression in mlx3d.training.adam"), s_(s), num_threads_(num_threads) {}
 
   void eval_cpu(const std::vector<mx::array>& inputs, std::vector<mx::array>& outputs) override {
     auto& encoder = prepare_outputs(stream(), inputs, outputs);
@@ -62,10 +63,6 @@ class AdamStep : public mx::Primitive {
     encoder.dispatch([=, s = s_, threads = num_threads_]() { run_adam(p, g, m, v, po, mo, vo, n, s, threads); });
   }
 
-  void eval_gpu(const std::vector<mx::array>&, std::vector<mx::array>&) override {
-    throw std::runtime_error("AdamStep runs on the CPU only (Apple GPUs use the MLX expression in mlx3d.training.adam).");
-  }
-
   std::vector<mx::array> vjp(const std::vector<mx::array>&, const std::vector<mx::array>&, const std::vector<int>&,
                              const std::vector<mx::array>&) override {
     throw std::runtime_error("AdamStep is an optimizer update and has no gradient.");
@@ -73,10 +70,6 @@ class AdamStep : public mx::Primitive {
 
   std::vector<mx::array> jvp(const std::vector<mx::array>&, const std::vector<mx::array>&, const std::vector<int>&) override {
     throw std::runtime_error("AdamStep is an optimizer update and has no gradient.");
-  }
-
-  std::pair<std::vector<mx::array>, std::vector<int>> vmap(const std::vector<mx::array>&, const std::vector<int>&) override {
-    throw std::runtime_error("AdamStep: vmap is not implemented.");
   }
 
   std::vector<mx::Shape> output_shapes(const std::vector<mx::array>& inputs) override {

@@ -182,10 +182,10 @@ void run_loss(const float* x, const float* y, const float* w, Image im, float la
   });
 }
 
-class PhotometricLoss : public mx::Primitive {
+class PhotometricLoss : public CpuPrimitive {
  public:
   PhotometricLoss(mx::Stream stream, float lambda, std::vector<float> taps, int num_threads)
-      : mx::Primitive(stream), lambda_(lambda), taps_(std::move(taps)), num_threads_(num_threads) {}
+      : CpuPrimitive(stream, "Apple GPUs use mlx3d.training.metrics' MLX graph"), lambda_(lambda), taps_(std::move(taps)), num_threads_(num_threads) {}
 
   // inputs: img (H,W,C), ref (H,W,C)[, weights (H,W)]; outputs: loss (), dloss/dimg (H,W,C)
   void eval_cpu(const std::vector<mx::array>& inputs, std::vector<mx::array>& outputs) override {
@@ -197,10 +197,6 @@ class PhotometricLoss : public mx::Primitive {
     const float* w = inputs.size() > 2 ? inputs[2].data<float>() : nullptr;
     float *loss = outputs[0].data<float>(), *grad = outputs[1].data<float>();
     encoder.dispatch([=, lambda = lambda_, taps = taps_, threads = num_threads_]() { run_loss(x, y, w, im, lambda, taps, threads, loss, grad); });
-  }
-
-  void eval_gpu(const std::vector<mx::array>&, std::vector<mx::array>&) override {
-    throw std::runtime_error("PhotometricLoss runs on the CPU only (Apple GPUs use mlx3d.training.metrics' MLX graph).");
   }
 
   std::vector<mx::array> vjp(const std::vector<mx::array>& primals, const std::vector<mx::array>& cotangents,
@@ -221,14 +217,6 @@ class PhotometricLoss : public mx::Primitive {
       }
     }
     return result;
-  }
-
-  std::vector<mx::array> jvp(const std::vector<mx::array>&, const std::vector<mx::array>&, const std::vector<int>&) override {
-    throw std::runtime_error("PhotometricLoss: forward-mode differentiation (jvp) is not implemented; use mx.grad / mx.vjp.");
-  }
-
-  std::pair<std::vector<mx::array>, std::vector<int>> vmap(const std::vector<mx::array>&, const std::vector<int>&) override {
-    throw std::runtime_error("PhotometricLoss: vmap is not implemented.");
   }
 
   std::vector<mx::Shape> output_shapes(const std::vector<mx::array>& inputs) override { return {mx::Shape{}, inputs[0].shape()}; }

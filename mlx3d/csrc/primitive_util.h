@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <atomic>
 #include <sstream>
+#include <stdexcept>
 #include <string>
 #include <thread>
 #include <vector>
@@ -12,6 +13,7 @@
 #include "mlx/allocator.h"
 #include "mlx/array.h"
 #include "mlx/backend/cpu/encoder.h"
+#include "mlx/primitives.h"
 
 namespace mlx3d {
 
@@ -61,6 +63,30 @@ inline mlx::core::cpu::CommandEncoder& prepare_outputs(const mlx::core::Stream& 
   for (auto& o : outputs) encoder.set_output_array(o);
   return encoder;
 }
+
+// Base of the CPU-only primitives: GPU evaluation, forward-mode differentiation and vmap are refused
+// with the primitive's name. `gpu_hint` says what Apple GPUs run instead.
+class CpuPrimitive : public mlx::core::Primitive {
+ public:
+  CpuPrimitive(mlx::core::Stream stream, const char* gpu_hint) : mlx::core::Primitive(stream), gpu_hint_(gpu_hint) {}
+
+  void eval_gpu(const std::vector<mlx::core::array>&, std::vector<mlx::core::array>&) override {
+    throw std::runtime_error(std::string(name()) + " runs on the CPU only (" + gpu_hint_ + ").");
+  }
+
+  std::vector<mlx::core::array> jvp(const std::vector<mlx::core::array>&, const std::vector<mlx::core::array>&,
+                                    const std::vector<int>&) override {
+    throw std::runtime_error(std::string(name()) + ": forward-mode differentiation (jvp) is not implemented; use mx.grad / mx.vjp.");
+  }
+
+  std::pair<std::vector<mlx::core::array>, std::vector<int>> vmap(const std::vector<mlx::core::array>&,
+                                                                  const std::vector<int>&) override {
+    throw std::runtime_error(std::string(name()) + ": vmap is not implemented.");
+  }
+
+ private:
+  const char* gpu_hint_;
+};
 
 // "(2, 3)" for a 2x3 array, "(5,)" for a vector.
 inline std::string shape_str(const mlx::core::array& a) {

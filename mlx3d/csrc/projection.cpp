@@ -51,21 +51,10 @@ void check_contiguous(const std::vector<mx::array>& inputs) {
     if (!a.flags().row_contiguous) throw std::runtime_error("project_ewa: internal error: non-contiguous input");
 }
 
-class ProjectBase : public mx::Primitive {
+class ProjectBase : public CpuPrimitive {
  public:
-  ProjectBase(mx::Stream stream, PmCamera cam, int num_threads) : mx::Primitive(stream), cam_(cam), num_threads_(num_threads) {}
-
-  void eval_gpu(const std::vector<mx::array>&, std::vector<mx::array>&) override {
-    throw std::runtime_error(std::string(name()) + " runs on the CPU only (Apple GPUs use the MLX reference projection).");
-  }
-
-  std::vector<mx::array> jvp(const std::vector<mx::array>&, const std::vector<mx::array>&, const std::vector<int>&) override {
-    throw std::runtime_error(std::string(name()) + ": forward-mode differentiation (jvp) is not implemented; use mx.grad / mx.vjp.");
-  }
-
-  std::pair<std::vector<mx::array>, std::vector<int>> vmap(const std::vector<mx::array>&, const std::vector<int>&) override {
-    throw std::runtime_error(std::string(name()) + ": vmap is not implemented.");
-  }
+  ProjectBase(mx::Stream stream, PmCamera cam, int num_threads)
+      : CpuPrimitive(stream, "Apple GPUs use the MLX reference projection"), cam_(cam), num_threads_(num_threads) {}
 
   bool is_equivalent(const mx::Primitive& other) const override {
     const auto* o = dynamic_cast<const ProjectBase*>(&other);

@@ -108,21 +108,10 @@ void run_backward(ShInputs in, const float* cot, int num_threads, float* d_sh, f
   });
 }
 
-class ShColorBase : public mx::Primitive {
+class ShColorBase : public CpuPrimitive {
  public:
-  ShColorBase(mx::Stream stream, int degree, int num_threads) : mx::Primitive(stream), degree_(degree), num_threads_(num_threads) {}
-
-  void eval_gpu(const std::vector<mx::array>&, std::vector<mx::array>&) override {
-    throw std::runtime_error(std::string(name()) + " runs on the CPU only (Apple GPUs use the MLX reference, mlx3d.splatting.sh.eval_sh).");
-  }
-
-  std::vector<mx::array> jvp(const std::vector<mx::array>&, const std::vector<mx::array>&, const std::vector<int>&) override {
-    throw std::runtime_error(std::string(name()) + ": forward-mode differentiation (jvp) is not implemented; use mx.grad / mx.vjp.");
-  }
-
-  std::pair<std::vector<mx::array>, std::vector<int>> vmap(const std::vector<mx::array>&, const std::vector<int>&) override {
-    throw std::runtime_error(std::string(name()) + ": vmap is not implemented.");
-  }
+  ShColorBase(mx::Stream stream, int degree, int num_threads)
+      : CpuPrimitive(stream, "Apple GPUs use the MLX reference, mlx3d.splatting.sh.eval_sh"), degree_(degree), num_threads_(num_threads) {}
 
   bool is_equivalent(const mx::Primitive& other) const override {
     const auto* o = dynamic_cast<const ShColorBase*>(&other);
