@@ -8,7 +8,7 @@ import pytest
 
 from mlx3d.cameras import Camera
 from mlx3d.render.projection import project_ewa
-from mlx3d.render.raster_cpu import get_num_threads, set_num_threads
+from thread_counts import per_thread_count
 
 # the same float32 formulas in another evaluation order: outputs to a few ulp; gradients through the
 # conic (which squares the 2D covariance's inverse) to 1e-3 of each entry's size, or 1e-6 of the
@@ -94,17 +94,16 @@ def test_culled_gaussians_get_gradients_only_through_their_depth():
 def test_bitwise_identical_for_any_thread_count():
     cam, arrays, rng = scene(n=9001, seed=3)
     cots = [mx.array(rng.normal(0, 1, s).astype(np.float32)) for s in ((9001, 2), (9001, 3), (9001,), (9001,))]
-    before, runs = get_num_threads(), []
-    try:
-        for threads in (1, 2, 3):
-            set_num_threads(threads)
-            def f(m, q, s):
-                p = project(cam, [m, q, s], True, "cpu")
-                return p["means2d"], p["conics"], p["depths"], p["compensation"]
-            outs, grads = mx.vjp(f, arrays, cots)
-            runs.append([np.array(a) for a in list(outs) + list(grads)])
-    finally:
-        set_num_threads(before)
+
+    def f(m, q, s):
+        p = project(cam, [m, q, s], True, "cpu")
+        return p["means2d"], p["conics"], p["depths"], p["compensation"]
+
+    def run():
+        outs, grads = mx.vjp(f, arrays, cots)
+        return [np.array(a) for a in list(outs) + list(grads)]
+
+    runs = per_thread_count(run)
     for other in runs[1:]:
         for a, b in zip(runs[0], other):
             np.testing.assert_array_equal(a, b)

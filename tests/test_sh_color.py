@@ -5,9 +5,9 @@ import mlx.core as mx
 import numpy as np
 import pytest
 
-from mlx3d.render.raster_cpu import get_num_threads, set_num_threads
 from mlx3d.render.sh_color import sh_colors
 from mlx3d.splatting.sh import eval_sh
+from thread_counts import per_thread_count
 
 # float32 kernels against the float32 reference: both sum the same terms in the same order, but
 # the reference's normalisation uses pow(·, -0.5) and autodiff's own expression order
@@ -64,15 +64,12 @@ def test_position_gradient_matches_float64_finite_differences():
 def test_bitwise_identical_for_any_thread_count():
     sh, means, centre, rng = problem(n=10_001)
     cot = mx.array(rng.normal(0, 1, (10_001, 3)).astype(np.float32))
-    before = get_num_threads()
-    runs = []
-    try:
-        for threads in (1, 2, 3):
-            set_num_threads(threads)
-            rgb, (g_sh, g_means) = mx.vjp(lambda s, m: sh_colors(s, m, centre, 3, "cpu"), [sh, means], [cot])
-            runs.append([np.array(a) for a in (rgb, g_sh, g_means)])
-    finally:
-        set_num_threads(before)
+
+    def run():
+        rgb, (g_sh, g_means) = mx.vjp(lambda s, m: sh_colors(s, m, centre, 3, "cpu"), [sh, means], [cot])
+        return [np.array(a) for a in (rgb, g_sh, g_means)]
+
+    runs = per_thread_count(run)
     for other in runs[1:]:
         for a, b in zip(runs[0], other):
             np.testing.assert_array_equal(a, b)

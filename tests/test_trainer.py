@@ -11,6 +11,7 @@ from mlx3d.splatting import GaussianModel
 from mlx3d.training.adam import Adam
 from mlx3d.training.density import add_gaussians_mcmc, densify_and_prune, relocate_dead, relocation_correction, reset_opacities, sgld_noise
 from mlx3d.training.trainer import GaussianTrainer, TrainerConfig, TrainingError, events_at
+from thread_counts import per_thread_count
 
 
 # ------------------------------------------------------------------ schedules
@@ -83,30 +84,24 @@ def test_adam_matches_reference_and_edits_rows(backend):
 def test_fused_adam_matches_the_mlx_expression_for_any_thread_count():
     """The CPU kernel (one pass) against Adam's MLX expression over 3DGS-like learning rates and
     gradients spanning 12 orders of magnitude, for 4 steps; bitwise equal for 1, 2 and 3 threads."""
-    from mlx3d.render.raster_cpu import get_num_threads, set_num_threads
-
     rng = np.random.default_rng(3)
     shapes = {"means": (70_001, 3), "sh_rest": (5_000, 15, 3), "opacities": (70_001,)}
     params = {k: mx.array(rng.normal(size=s).astype(np.float32)) for k, s in shapes.items()}
     grads = [{k: mx.array((rng.normal(size=s) * 10.0 ** rng.uniform(-12, 0, s)).astype(np.float32)) for k, s in shapes.items()} for _ in range(4)]
     lrs = {"means": 1.6e-4, "sh_rest": 2.5e-3 / 20, "opacities": 5e-2}
-    results = {}
-    before = get_num_threads()
-    try:
-        for backend, threads in (("reference", 1), ("cpu", 1), ("cpu", 2), ("cpu", 3)):
-            set_num_threads(threads)
-            opt, p = Adam(lrs, backend=backend), dict(params)
-            for g in grads:
-                p = opt.update(p, g)
-            results[backend, threads] = {k: np.array(v) for k, v in list(p.items()) + [("m/" + k, m) for k, m in opt.m.items()] + [("v/" + k, v) for k, v in opt.v.items()]}
-    finally:
-        set_num_threads(before)
-    for key in results[("reference", 1)]:
-        ref = results[("reference", 1)][key]
+
+    def run(backend):
+        opt, p = Adam(lrs, backend=backend), dict(params)
+        for g in grads:
+            p = opt.update(p, g)
+        return {k: np.array(v) for k, v in list(p.items()) + [("m/" + k, m) for k, m in opt.m.items()] + [("v/" + k, v) for k, v in opt.v.items()]}
+
+    reference, (one, two, three) = run("reference"), per_thread_count(lambda: run("cpu"))
+    for key in reference:
         # float32 rounding of the same formula: the moments agree to a few ulp, the step to lr x 1e-5
-        np.testing.assert_allclose(results[("cpu", 1)][key], ref, rtol=1e-6, atol=1e-6 * lrs[key.split("/")[-1]], err_msg=key)
-        for threads in (2, 3):
-            np.testing.assert_array_equal(results[("cpu", threads)][key], results[("cpu", 1)][key], err_msg=key)
+        np.testing.assert_allclose(one[key], reference[key], rtol=1e-6, atol=1e-6 * lrs[key.split("/")[-1]], err_msg=key)
+        for other in (two, three):
+            np.testing.assert_array_equal(other[key], one[key], err_msg=key)
 
 
 # ------------------------------------------------------------------ density control
@@ -267,7 +262,6 @@ def test_fit_on_a_dataset_folder_with_progress_and_cancel(tmp_path):
     assert after < 0.8 * before
 
 
-
 # ------------------------------------------------------------------ MCMC
 @pytest.mark.parametrize("copies", [2, 3, 6])
 def test_relocation_correction_preserves_the_rendered_gaussian(copies):
@@ -400,7 +394,6 @@ def test_mcmc_schedule_and_training():
     assert len(trainer.model) <= 80 and len(trainer.model) > 60
 
 
-
 def test_bilateral_grid_absorbs_exposure_differences(tmp_path):
     model, cams, targets = small_problem(7)
     gains = np.array([0.8, 1.2, 0.9, 1.1, 0.85, 1.15])
@@ -423,10 +416,7 @@ def test_bilateral_grid_absorbs_exposure_differences(tmp_path):
 
 def test_training_with_densification_is_deterministic():
     """Same seed, same views: bit-identical parameters after densification rounds, for any thread count."""
-    from mlx3d.render.raster_cpu import get_num_threads, set_num_threads
-
-    def run(threads):
-        set_num_threads(threads)
+    def run():
         model, cams, targets = small_problem(3)
         config = TrainerConfig(steps=40, densify_from=5, densify_every=10, densify_grad_threshold=1e-6, max_gaussians=150)
         trainer = GaussianTrainer(model, config, scene_extent=3.0)
@@ -434,11 +424,7 @@ def test_training_with_densification_is_deterministic():
             trainer.step(cams[i % 6], targets[i % 6])
         return {k: np.array(v) for k, v in trainer.model.params.items()}
 
-    before = get_num_threads()
-    try:
-        a, b = run(1), run(2)
-    finally:
-        set_num_threads(before)
+    a, b = per_thread_count(run, (1, 2))
     assert a["means"].shape[0] > 60  # densification ran
     for k in a:
         np.testing.assert_array_equal(a[k], b[k])

@@ -264,4 +264,3 @@ def _describe(spec) -> str:
     if spec == "random":
         return "random, a new colour every step"
     return spec if isinstance(spec, str) else "(" + ", ".join(f"{float(c):g}" for c in spec) + ")"
-
