@@ -41,7 +41,7 @@ namespace {
 constexpr float kC1 = 0.01f * 0.01f;
 constexpr float kC2 = 0.03f * 0.03f;
 constexpr double kWeightFloor = 1e-12;
-constexpr int kRows = 8;  // image rows per work item
+constexpr int kRows = 8;  // at least this many image rows per thread
 
 struct Image {
   int h, w, c;
@@ -51,9 +51,7 @@ struct Image {
 // dst = zero-padded "same" separable filter of src with the symmetric `taps`; tmp: scratch of src's size.
 void blur(const float* src, float* dst, float* tmp, Image im, const std::vector<float>& taps, int threads) {
   const int r = static_cast<int>(taps.size()) / 2, rowlen = im.w * im.c;
-  const float* t = taps.data();
-  parallel_ranges(im.h, threads, [=](int64_t lo, int64_t hi) {  // vertical pass
-    const std::vector<float> taps(t, t + 2 * r + 1);
+  parallel_ranges(im.h, threads, [=](int64_t lo, int64_t hi) {  // vertical pass (taps copied per thread)
     for (int i = int(lo); i < int(hi); ++i) {
       float* out = tmp + size_t(i) * rowlen;
       const float* mid = src + size_t(i) * rowlen;
@@ -75,7 +73,6 @@ void blur(const float* src, float* dst, float* tmp, Image im, const std::vector<
   // horizontal pass on each row copied into a zero-padded scratch row (branch-free, vectorisable)
   const int pad = r * im.c;
   parallel_ranges(im.h, threads, [=](int64_t lo, int64_t hi) {
-    const std::vector<float> taps(t, t + 2 * r + 1);
     std::vector<float> scratch(rowlen + 2 * pad, 0.0f);
     float* row = scratch.data();
     for (int i = int(lo); i < int(hi); ++i) {
@@ -97,7 +94,7 @@ void blur(const float* src, float* dst, float* tmp, Image im, const std::vector<
 void run_loss(const float* x, const float* y, const float* w, Image im, float lambda, const std::vector<float>& taps,
               int num_threads, float* loss_out, float* grad) {
   const size_t n = im.size();
-  const int pixels = im.h * im.w, rowlen = im.w * im.c;
+  const int pixels = im.h * im.w;
   const int blocks = (im.h + kRows - 1) / kRows;
   const int threads = resolve_threads(num_threads, blocks);
   double wsum = 0.0;
@@ -128,10 +125,8 @@ void run_loss(const float* x, const float* y, const float* w, Image im, float la
   std::vector<float> d_xy_buf(n);
   float* d_xy = d_xy_buf.data();
   const float inv_c = 1.0f / im.c;
-  const float *pmx = mu_x.data(), *pmy = mu_y.data(), *pxx = e_xx.data(), *pyy = e_yy.data(), *pxy = e_xy.data();
-  double *pl1 = row_l1.data(), *pss = row_ssim.data();
-  parallel_ranges(im.h, threads, [=](int64_t lo, int64_t hi) {
-    const float *mu_x = pmx, *mu_y = pmy, *e_xx = pxx, *e_yy = pyy, *e_xy = pxy;
+  parallel_ranges(im.h, threads, [=, mu_x = mu_x.data(), mu_y = mu_y.data(), e_xx = e_xx.data(), e_yy = e_yy.data(),
+                                  e_xy = e_xy.data(), row_l1 = row_l1.data(), row_ssim = row_ssim.data()](int64_t lo, int64_t hi) {
     for (int i = int(lo); i < int(hi); ++i) {
       double l1 = 0.0, ssim = 0.0;
       for (int xj = 0; xj < im.w; ++xj) {
@@ -156,8 +151,8 @@ void run_loss(const float* x, const float* y, const float* w, Image im, float la
         l1 += double(wp) * (lp * inv_c);
         ssim += double(wp) * (sp * inv_c);
       }
-      pl1[i] = l1;
-      pss[i] = ssim;
+      row_l1[i] = l1;
+      row_ssim[i] = ssim;
     }
   });
   double l1 = 0.0, ssim = 0.0;
@@ -168,11 +163,7 @@ void run_loss(const float* x, const float* y, const float* w, Image im, float la
   blur(d_xx, e_xx.data(), e_yy.data(), im, taps, threads);
   blur(d_xy, e_xy.data(), e_yy.data(), im, taps, threads);
   const float l1_scale = static_cast<float>((1.0 - lambda) * inv_w) * inv_c;
-  const float *bmu = mu_x.data(), *bxx = e_xx.data(), *bxy = e_xy.data();
-  const int channels = im.c;
-  parallel_ranges(int64_t(n), threads, [=](int64_t lo, int64_t hi) {
-    const float *mu_x = bmu, *e_xx = bxx, *e_xy = bxy;
-    const Image im{0, 0, channels};
+  parallel_ranges(int64_t(n), threads, [=, mu_x = mu_x.data(), e_xx = e_xx.data(), e_xy = e_xy.data()](int64_t lo, int64_t hi) {
     for (int64_t q = lo; q < hi; ++q) {
       const float diff = x[q] - y[q];
       const float sign = diff > 0.0f ? 1.0f : (diff < 0.0f ? -1.0f : 0.0f);
@@ -189,9 +180,7 @@ class PhotometricLoss : public CpuPrimitive {
 
   // inputs: img (H,W,C), ref (H,W,C)[, weights (H,W)]; outputs: loss (), dloss/dimg (H,W,C)
   void eval_cpu(const std::vector<mx::array>& inputs, std::vector<mx::array>& outputs) override {
-    auto& encoder = prepare_outputs(stream(), inputs, outputs);
-    for (const auto& a : inputs)
-      if (!a.flags().row_contiguous) throw std::runtime_error("photometric_loss: internal error: non-contiguous input");
+    auto& encoder = prepare_outputs(*this, inputs, outputs);
     const Image im{inputs[0].shape(0), inputs[0].shape(1), inputs[0].shape(2)};
     const float *x = inputs[0].data<float>(), *y = inputs[1].data<float>();
     const float* w = inputs.size() > 2 ? inputs[2].data<float>() : nullptr;

@@ -54,11 +54,15 @@ void parallel_ranges(int64_t n, int threads, const Fn& fn) {
   for (auto& th : pool) th.join();
 }
 
-// Allocates the outputs and registers every array with the stream's CPU command encoder, which it returns.
-inline mlx::core::cpu::CommandEncoder& prepare_outputs(const mlx::core::Stream& stream, const std::vector<mlx::core::array>& inputs,
+// Checks that every input is row-contiguous (the ops make them so before building a primitive, and the
+// kernels index them as plain arrays), allocates the outputs and registers every array with the primitive's
+// CPU command encoder, which it returns.
+inline mlx::core::cpu::CommandEncoder& prepare_outputs(mlx::core::Primitive& primitive, const std::vector<mlx::core::array>& inputs,
                                                        std::vector<mlx::core::array>& outputs) {
+  for (const auto& a : inputs)
+    if (!a.flags().row_contiguous) throw std::runtime_error(std::string(primitive.name()) + ": internal error: non-contiguous input");
   for (auto& o : outputs) o.set_data(mlx::core::allocator::malloc(o.nbytes()));
-  auto& encoder = mlx::core::cpu::get_command_encoder(stream);
+  auto& encoder = mlx::core::cpu::get_command_encoder(primitive.stream());
   for (const auto& a : inputs) encoder.set_input_array(a);
   for (auto& o : outputs) encoder.set_output_array(o);
   return encoder;

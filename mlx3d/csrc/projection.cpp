@@ -46,11 +46,6 @@ void for_each_gaussian(int64_t n, int num_threads, const Fn& fn) {
   });
 }
 
-void check_contiguous(const std::vector<mx::array>& inputs) {
-  for (const auto& a : inputs)
-    if (!a.flags().row_contiguous) throw std::runtime_error("project_ewa: internal error: non-contiguous input");
-}
-
 class ProjectBase : public CpuPrimitive {
  public:
   ProjectBase(mx::Stream stream, PmCamera cam, int num_threads)
@@ -82,8 +77,7 @@ class ProjectEwaBackward : public ProjectBase {
   // inputs: means, quats, scales, dL/dmeans2d (N,2), dL/dconics (N,3), dL/ddepths (N,), dL/dcompensation (N,)
   // outputs: dL/dmeans, dL/dquats, dL/dscales
   void eval_cpu(const std::vector<mx::array>& inputs, std::vector<mx::array>& outputs) override {
-    auto& encoder = prepare_outputs(stream(), inputs, outputs);
-    check_contiguous(inputs);
+    auto& encoder = prepare_outputs(*this, inputs, outputs);
     const float *means = inputs[0].data<float>(), *quats = inputs[1].data<float>(), *scales = inputs[2].data<float>();
     const float *g2 = inputs[3].data<float>(), *gc = inputs[4].data<float>(), *gd = inputs[5].data<float>(), *gk = inputs[6].data<float>();
     float *dm = outputs[0].data<float>(), *dq = outputs[1].data<float>(), *ds = outputs[2].data<float>();
@@ -116,8 +110,7 @@ class ProjectEwaForward : public ProjectBase {
   using ProjectBase::ProjectBase;
 
   void eval_cpu(const std::vector<mx::array>& inputs, std::vector<mx::array>& outputs) override {
-    auto& encoder = prepare_outputs(stream(), inputs, outputs);
-    check_contiguous(inputs);
+    auto& encoder = prepare_outputs(*this, inputs, outputs);
     const float *means = inputs[0].data<float>(), *quats = inputs[1].data<float>(), *scales = inputs[2].data<float>();
     float *m2 = outputs[0].data<float>(), *con = outputs[1].data<float>(), *dep = outputs[3].data<float>(), *comp = outputs[4].data<float>();
     int32_t* radii = outputs[2].data<int32_t>();

@@ -1038,8 +1038,6 @@ void check(bool ok, const std::string& msg) {
 }
 
 Inputs input_pointers(const std::vector<mx::array>& inputs) {
-  for (const auto& a : inputs)
-    if (!a.flags().row_contiguous) throw std::runtime_error("rasterize: internal error: non-contiguous input");
   Inputs in;
   in.means = inputs[0].data<float>();
   in.conics = inputs[1].data<float>();
@@ -1061,10 +1059,8 @@ class RasterizeBackward : public mx::Primitive {
   //         last, final_T, dL/daccum (H,W,C), dL/dalpha (H,W)
   // outputs: dL/dmeans2d, dL/dconics, dL/dfeatures, dL/dopacities
   void eval_cpu(const std::vector<mx::array>& inputs, std::vector<mx::array>& outputs) override {
-    auto& encoder = prepare_outputs(stream(), inputs, outputs);
+    auto& encoder = prepare_outputs(*this, inputs, outputs);
     Inputs in = input_pointers(inputs);
-    for (int i = 6; i < 10; ++i)
-      if (!inputs[i].flags().row_contiguous) throw std::runtime_error("rasterize: internal error: non-contiguous input");
     const Geometry geo = make_geometry(width_, height_, tile_, inputs[0].shape(0), inputs[2].shape(1), inputs[5].size());
     BackwardIn bw{inputs[6].data<int32_t>(), inputs[7].data<float>(), inputs[8].data<float>(), inputs[9].data<float>()};
     GradOut out{outputs[0].data<float>(), outputs[1].data<float>(), outputs[2].data<float>(), outputs[3].data<float>()};
@@ -1111,7 +1107,7 @@ class RasterizeForward : public mx::Primitive {
       : mx::Primitive(stream), width_(width), height_(height), tile_(tile), num_threads_(num_threads) {}
 
   void eval_cpu(const std::vector<mx::array>& inputs, std::vector<mx::array>& outputs) override {
-    auto& encoder = prepare_outputs(stream(), inputs, outputs);
+    auto& encoder = prepare_outputs(*this, inputs, outputs);
     Inputs in = input_pointers(inputs);
     const Geometry geo = make_geometry(width_, height_, tile_, inputs[0].shape(0), inputs[2].shape(1), inputs[5].size());
     ForwardOut out{outputs[0].data<float>(), outputs[1].data<float>(), outputs[2].data<int32_t>(),

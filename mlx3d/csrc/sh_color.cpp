@@ -41,8 +41,6 @@ struct ShInputs {
 };
 
 ShInputs sh_inputs(const std::vector<mx::array>& inputs, int degree) {
-  for (int i = 0; i < 3; ++i)
-    if (!inputs[i].flags().row_contiguous) throw std::runtime_error("sh_color: internal error: non-contiguous input");
   return {inputs[0].data<float>(), inputs[1].data<float>(), inputs[2].data<float>(), inputs[0].shape(0),
           inputs[0].shape(1), degree};
 }
@@ -128,8 +126,7 @@ class ShColorBackward : public ShColorBase {
 
   // inputs: sh, means, centre, dL/drgb (N,3); outputs: dL/dsh, dL/dmeans
   void eval_cpu(const std::vector<mx::array>& inputs, std::vector<mx::array>& outputs) override {
-    auto& encoder = prepare_outputs(stream(), inputs, outputs);
-    if (!inputs[3].flags().row_contiguous) throw std::runtime_error("sh_color: internal error: non-contiguous input");
+    auto& encoder = prepare_outputs(*this, inputs, outputs);
     ShInputs in = sh_inputs(inputs, degree_);
     const float* cot = inputs[3].data<float>();
     float* d_sh = outputs[0].data<float>();
@@ -154,7 +151,7 @@ class ShColorForward : public ShColorBase {
   using ShColorBase::ShColorBase;
 
   void eval_cpu(const std::vector<mx::array>& inputs, std::vector<mx::array>& outputs) override {
-    auto& encoder = prepare_outputs(stream(), inputs, outputs);
+    auto& encoder = prepare_outputs(*this, inputs, outputs);
     ShInputs in = sh_inputs(inputs, degree_);
     float* rgb = outputs[0].data<float>();
     encoder.dispatch([in, rgb, threads = num_threads_]() { run_forward(in, threads, rgb); });
