@@ -36,7 +36,7 @@ struct AdamScalars {
 
 void run_adam(const float* p, const float* g, const float* m, const float* v, float* p_out, float* m_out, float* v_out,
               int64_t n, AdamScalars s, int num_threads) {
-  parallel_ranges(n, resolve_threads(num_threads, static_cast<int>((n + kBlock - 1) / kBlock)), [=](int64_t lo, int64_t hi) {
+  parallel_ranges(n, num_threads, kBlock, [=](int64_t lo, int64_t hi) {
     for (int64_t i = lo; i < hi; ++i) {
       const float gi = g[i];
       const float mi = s.b1 * m[i] + s.one_minus_b1 * gi;

@@ -49,9 +49,9 @@ struct Image {
 };
 
 // dst = zero-padded "same" separable filter of src with the symmetric `taps`; tmp: scratch of src's size.
-void blur(const float* src, float* dst, float* tmp, Image im, const std::vector<float>& taps, int threads) {
+void blur(const float* src, float* dst, float* tmp, Image im, const std::vector<float>& taps, int num_threads) {
   const int r = static_cast<int>(taps.size()) / 2, rowlen = im.w * im.c;
-  parallel_ranges(im.h, threads, [=](int64_t lo, int64_t hi) {  // vertical pass (taps copied per thread)
+  parallel_ranges(im.h, num_threads, kRows, [=](int64_t lo, int64_t hi) {  // vertical pass (taps copied per thread)
     for (int i = int(lo); i < int(hi); ++i) {
       float* out = tmp + size_t(i) * rowlen;
       const float* mid = src + size_t(i) * rowlen;
@@ -72,7 +72,7 @@ void blur(const float* src, float* dst, float* tmp, Image im, const std::vector<
   });
   // horizontal pass on each row copied into a zero-padded scratch row (branch-free, vectorisable)
   const int pad = r * im.c;
-  parallel_ranges(im.h, threads, [=](int64_t lo, int64_t hi) {
+  parallel_ranges(im.h, num_threads, kRows, [=](int64_t lo, int64_t hi) {
     std::vector<float> scratch(rowlen + 2 * pad, 0.0f);
     float* row = scratch.data();
     for (int i = int(lo); i < int(hi); ++i) {
@@ -95,8 +95,7 @@ void run_loss(const float* x, const float* y, const float* w, Image im, float la
               int num_threads, float* loss_out, float* grad) {
   const size_t n = im.size();
   const int pixels = im.h * im.w;
-  const int blocks = (im.h + kRows - 1) / kRows;
-  const int threads = resolve_threads(num_threads, blocks);
+  const int64_t per_thread = int64_t(kRows) * im.w * im.c;  // elements: as many threads as for the rows
   double wsum = 0.0;
   if (w)
     for (int p = 0; p < pixels; ++p) wsum += w[p];
@@ -106,18 +105,18 @@ void run_loss(const float* x, const float* y, const float* w, Image im, float la
   std::vector<float> prod(n), tmp(n), mu_x(n), mu_y(n), e_xx(n), e_yy(n), e_xy(n);
   auto fill = [&](auto f) {
     float* out = prod.data();
-    parallel_ranges(int64_t(n), threads, [=](int64_t lo, int64_t hi) {
+    parallel_ranges(int64_t(n), num_threads, per_thread, [=](int64_t lo, int64_t hi) {
       for (int64_t i = lo; i < hi; ++i) out[i] = f(i);
     });
   };
-  blur(x, mu_x.data(), tmp.data(), im, taps, threads);
-  blur(y, mu_y.data(), tmp.data(), im, taps, threads);
+  blur(x, mu_x.data(), tmp.data(), im, taps, num_threads);
+  blur(y, mu_y.data(), tmp.data(), im, taps, num_threads);
   fill([x](int64_t i) { return x[i] * x[i]; });
-  blur(prod.data(), e_xx.data(), tmp.data(), im, taps, threads);
+  blur(prod.data(), e_xx.data(), tmp.data(), im, taps, num_threads);
   fill([y](int64_t i) { return y[i] * y[i]; });
-  blur(prod.data(), e_yy.data(), tmp.data(), im, taps, threads);
+  blur(prod.data(), e_yy.data(), tmp.data(), im, taps, num_threads);
   fill([x, y](int64_t i) { return x[i] * y[i]; });
-  blur(prod.data(), e_xy.data(), tmp.data(), im, taps, threads);
+  blur(prod.data(), e_xy.data(), tmp.data(), im, taps, num_threads);
   // per pixel: the loss terms, and g ∂S/∂(μx, E[x²], E[xy]) in place of μy, E[y²] and E[xy]'s copies
   std::vector<double> row_l1(im.h, 0.0), row_ssim(im.h, 0.0);
   float* d_mu = prod.data();
@@ -125,7 +124,7 @@ void run_loss(const float* x, const float* y, const float* w, Image im, float la
   std::vector<float> d_xy_buf(n);
   float* d_xy = d_xy_buf.data();
   const float inv_c = 1.0f / im.c;
-  parallel_ranges(im.h, threads, [=, mu_x = mu_x.data(), mu_y = mu_y.data(), e_xx = e_xx.data(), e_yy = e_yy.data(),
+  parallel_ranges(im.h, num_threads, kRows, [=, mu_x = mu_x.data(), mu_y = mu_y.data(), e_xx = e_xx.data(), e_yy = e_yy.data(),
                                   e_xy = e_xy.data(), row_l1 = row_l1.data(), row_ssim = row_ssim.data()](int64_t lo, int64_t hi) {
     for (int i = int(lo); i < int(hi); ++i) {
       double l1 = 0.0, ssim = 0.0;
@@ -159,11 +158,11 @@ void run_loss(const float* x, const float* y, const float* w, Image im, float la
   for (int i = 0; i < im.h; ++i) l1 += row_l1[i], ssim += row_ssim[i];
   *loss_out = static_cast<float>((1.0 - lambda) * l1 * inv_w + lambda * (1.0 - ssim * inv_w));
   // back through the filter (self-adjoint); mu_x, e_xx, e_xy are free now
-  blur(d_mu, mu_x.data(), e_yy.data(), im, taps, threads);
-  blur(d_xx, e_xx.data(), e_yy.data(), im, taps, threads);
-  blur(d_xy, e_xy.data(), e_yy.data(), im, taps, threads);
+  blur(d_mu, mu_x.data(), e_yy.data(), im, taps, num_threads);
+  blur(d_xx, e_xx.data(), e_yy.data(), im, taps, num_threads);
+  blur(d_xy, e_xy.data(), e_yy.data(), im, taps, num_threads);
   const float l1_scale = static_cast<float>((1.0 - lambda) * inv_w) * inv_c;
-  parallel_ranges(int64_t(n), threads, [=, mu_x = mu_x.data(), e_xx = e_xx.data(), e_xy = e_xy.data()](int64_t lo, int64_t hi) {
+  parallel_ranges(int64_t(n), num_threads, per_thread, [=, mu_x = mu_x.data(), e_xx = e_xx.data(), e_xy = e_xy.data()](int64_t lo, int64_t hi) {
     for (int64_t q = lo; q < hi; ++q) {
       const float diff = x[q] - y[q];
       const float sign = diff > 0.0f ? 1.0f : (diff < 0.0f ? -1.0f : 0.0f);

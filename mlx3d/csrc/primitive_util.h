@@ -38,13 +38,14 @@ void parallel_items(int t0, int t1, int threads, Fn&& fn) {
   for (auto& th : pool) th.join();
 }
 
-// Runs fn(lo, hi) on `threads` contiguous ranges covering [0, n), each thread with its own copy of
-// fn (capture by value): for per-element work. Sharing the callable's captures between threads through
+// Runs fn(lo, hi) on contiguous ranges covering [0, n), one per thread (num_threads, 0: all hardware
+// threads, at most one per min_per_thread items), each thread with its own copy of fn (capture by
+// value): for per-element work. Sharing the callable's captures between threads through
 // references, as parallel_items does, measured 1.5x slower per thread here than one thread alone on the
 // SH and projection kernels; copies scale.
 template <typename Fn>
-void parallel_ranges(int64_t n, int threads, const Fn& fn) {
-  threads = static_cast<int>(std::max<int64_t>(1, std::min<int64_t>(threads, n)));
+void parallel_ranges(int64_t n, int num_threads, int64_t min_per_thread, const Fn& fn) {
+  const int threads = resolve_threads(num_threads, static_cast<int>(std::max<int64_t>(1, (n + min_per_thread - 1) / min_per_thread)));
   const int64_t step = (n + threads - 1) / threads;
   std::vector<std::thread> pool;
   pool.reserve(threads - 1);

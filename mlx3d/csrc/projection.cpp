@@ -41,7 +41,7 @@ inline PmGaussian gaussian_at(const float* means, const float* quats, const floa
 
 template <typename Fn>
 void for_each_gaussian(int64_t n, int num_threads, const Fn& fn) {
-  parallel_ranges(n, resolve_threads(num_threads, static_cast<int>((n + kBlock - 1) / kBlock)), [fn](int64_t lo, int64_t hi) {
+  parallel_ranges(n, num_threads, kBlock, [fn](int64_t lo, int64_t hi) {
     for (int64_t i = lo; i < hi; ++i) fn(i);
   });
 }

@@ -45,7 +45,7 @@ ShInputs sh_inputs(const std::vector<mx::array>& inputs, int degree) {
           inputs[0].shape(1), degree};
 }
 
-// Unclamped colour of Gaussian i, and its direction.
+// Unclamped colour of Gaussian i seen along the basis b.
 inline void colour_of(const ShInputs& in, int64_t i, const ShBasis& b, float* c) {
   const float* s = in.sh + i * in.k * 3;
   const int bases = sh_num_bases(in.degree);
@@ -62,7 +62,7 @@ inline ShDir direction_of(const ShInputs& in, int64_t i) {
 }
 
 void run_forward(ShInputs in, int num_threads, float* rgb) {
-  parallel_ranges(in.n, resolve_threads(num_threads, static_cast<int>((in.n + kBlock - 1) / kBlock)), [in, rgb](int64_t lo, int64_t hi) {
+  parallel_ranges(in.n, num_threads, kBlock, [in, rgb](int64_t lo, int64_t hi) {
     for (int64_t i = lo; i < hi; ++i) {
       const ShDir u = direction_of(in, i);
       const ShBasis b = sh_basis(in.degree, u.x, u.y, u.z);
@@ -75,8 +75,7 @@ void run_forward(ShInputs in, int num_threads, float* rgb) {
 
 void run_backward(ShInputs in, const float* cot, int num_threads, float* d_sh, float* d_means) {
   const int bases = sh_num_bases(in.degree);
-  parallel_ranges(in.n, resolve_threads(num_threads, static_cast<int>((in.n + kBlock - 1) / kBlock)),
-                  [in, cot, d_sh, d_means, bases](int64_t lo, int64_t hi) {
+  parallel_ranges(in.n, num_threads, kBlock, [in, cot, d_sh, d_means, bases](int64_t lo, int64_t hi) {
     for (int64_t i = lo; i < hi; ++i) {
       const ShDir u = direction_of(in, i);
       const ShBasis b = sh_basis(in.degree, u.x, u.y, u.z);
