@@ -39,10 +39,9 @@ import os
 import platform
 import statistics
 import sys
-import threading
 import time
 
-from common import emit, peak_rss_mb  # bench/ is on sys.path when run as a script
+from common import LoadSampler, emit, machine_line, peak_rss_mb  # bench/ is on sys.path when run as a script
 
 BACKGROUND = (1.0, 1.0, 1.0)  # the scene's targets are composited on white
 VARIANTS = ("plain", "grid", "grid, per image")
@@ -99,35 +98,6 @@ class _PerImageCalls:
     def update(self, _params, grads):
         self.optimizer.update(self.bilateral, self.index, grads["grid"])
         return {"grid": None}
-
-
-class LoadSampler(threading.Thread):
-    """Samples the 1-minute load average every few seconds while the benchmark runs."""
-
-    def __init__(self, every: float = 3.0):
-        super().__init__(daemon=True)
-        self.every, self.samples, self.stop = every, [], threading.Event()
-
-    def sample(self) -> None:
-        try:
-            self.samples.append(os.getloadavg()[0])
-        except (OSError, AttributeError):
-            pass
-
-    def run(self) -> None:
-        self.sample()
-        while not self.stop.wait(self.every):
-            self.sample()
-
-    def line(self, cores: int) -> str:
-        s = self.samples
-        if not s:
-            return "load average not available"
-        text = f"1-minute load average during the run: median {statistics.median(s):.1f}, range {min(s):.1f}-{max(s):.1f} on {cores} cores"
-        if statistics.median(s) > 1.5:  # this benchmark keeps one core busy
-            text += (" (a shared machine: other processes ran beside the benchmark, so times are slower and noisier"
-                     " than on an idle one; the interleaved comparisons hold better than the absolute times)")
-        return text
 
 
 def _interleaved(fns: dict, rounds: int, warmup: int, before=None) -> dict:
@@ -274,14 +244,10 @@ def run(args) -> dict:
 
 
 def _machine_line(threads: int, load: LoadSampler) -> str:
-    from mlx3d.report.accuracy import machine_info
-
-    m = machine_info()
-    memory = f", {m['memory_gb']:.0f} GB memory" if m.get("memory_gb") else ""
     blas = os.environ.get("OPENBLAS_NUM_THREADS", "default")
-    return (f"{m['cpu']} ({m['machine']}, {m['cores']} cores{memory}), {m['platform']}; Python {m['python']}, "
-            f"MLX {m['mlx']} ({m['mlx_device']}), render backend {m['backend']}, {threads} render thread(s), "
-            f"numpy BLAS threads {blas}; {load.line(m['cores'] or 0)}")
+    note = "; the interleaved comparisons hold better than the absolute times"
+    load_line = load.line(os.cpu_count() or 0, 1.5, note)  # 1.5: this benchmark keeps one core busy
+    return machine_line(f", {threads} render thread(s), numpy BLAS threads {blas}; {load_line}")
 
 
 def main() -> None:
@@ -297,7 +263,7 @@ def main() -> None:
     if args.threads > 0:  # before numpy is imported
         for var in ("MLX3D_NUM_THREADS", "OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS"):
             os.environ[var] = str(args.threads)
-    load = LoadSampler()
+    load = LoadSampler(every=3.0)
     load.start()
     r = run(args)
     load.stop.set()

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import os
 import resource
+import statistics
 import sys
+import threading
 
 
 def rss_kib() -> tuple[int, int]:
@@ -45,3 +47,48 @@ def emit(table: str, markdown_path: str | None) -> None:
         os.makedirs(os.path.dirname(os.path.abspath(markdown_path)), exist_ok=True)
         with open(markdown_path, "w") as f:
             f.write(table)
+
+
+def machine_line(suffix: str = "") -> str:
+    """CPU, cores, memory, platform, Python, MLX and render backend, then ``suffix``."""
+    from mlx3d.report.accuracy import machine_info
+
+    m = machine_info()
+    memory = f", {m['memory_gb']:.0f} GB memory" if m.get("memory_gb") else ""
+    return (f"{m['cpu']} ({m['machine']}, {m['cores']} cores{memory}), {m['platform']}; Python {m['python']}, MLX {m['mlx']} "
+            f"({m['mlx_device']}), render backend {m['backend']}{suffix}")
+
+
+class LoadSampler(threading.Thread):
+    """Samples the 1-minute load average every ``every`` seconds while a benchmark runs (``start()``,
+    then ``stop.set()`` and ``join()``)."""
+
+    def __init__(self, every: float = 5.0):
+        super().__init__(daemon=True)
+        self.every, self.samples, self.stop = every, [], threading.Event()
+
+    def sample(self) -> None:
+        try:
+            self.samples.append(os.getloadavg()[0])
+        except (OSError, AttributeError):
+            pass
+
+    def run(self) -> None:
+        self.sample()
+        while not self.stop.wait(self.every):
+            self.sample()
+
+    def summary(self) -> dict:
+        s = self.samples
+        return {"n": len(s), "median": statistics.median(s), "min": min(s), "max": max(s)} if s else {"n": 0}
+
+    def line(self, cores: int, shared_above: float, note: str = "") -> str:
+        """The load during the run; a median above ``shared_above`` (more than the benchmark's own
+        load) is called out as a shared machine, followed by ``note``."""
+        load = self.summary()
+        if not load["n"]:
+            return "load average not available"
+        text = f"1-minute load average during the run: median {load['median']:.1f}, range {load['min']:.1f}-{load['max']:.1f} on {cores} cores"
+        if load["median"] > shared_above:
+            text += f" (a shared machine: other processes ran beside the benchmark, so times are slower and noisier than on an idle one{note})"
+        return text

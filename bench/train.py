@@ -43,13 +43,12 @@ import argparse
 import json
 import os
 import platform
-import statistics
 import subprocess
 import sys
 import threading
 import time
 
-from common import emit, peak_rss_mb  # bench/ is on sys.path when run as a script
+from common import LoadSampler, emit, machine_line, peak_rss_mb  # bench/ is on sys.path when run as a script
 
 VARIANTS = ("plain", "grid")
 
@@ -115,48 +114,11 @@ def _child(args) -> None:
         print(json.dumps(row), flush=True)
 
 
-# ------------------------------------------------------------------ the machine and its load
+# ------------------------------------------------------------------ the machine
 def _machine_line(jobs: int) -> str:
-    from mlx3d.report.accuracy import machine_info
-
-    m = machine_info()
-    memory = f", {m['memory_gb']:.0f} GB memory" if m.get("memory_gb") else ""
-    threads = max(1, (m["cores"] or 1) // jobs)
-    at_once = "one run at a time" if jobs == 1 else f"{jobs} runs at a time, {threads} thread{'s' if threads > 1 else ''} each"
-    return (f"{m['cpu']} ({m['machine']}, {m['cores']} cores{memory}), {m['platform']}; Python {m['python']}, MLX {m['mlx']} "
-            f"({m['mlx_device']}), render backend {m['backend']}; {at_once}")
-
-
-class LoadSampler(threading.Thread):
-    """Samples the 1-minute load average every few seconds while the benchmark runs."""
-
-    def __init__(self, every: float = 5.0):
-        super().__init__(daemon=True)
-        self.every, self.samples, self.stop = every, [], threading.Event()
-
-    def sample(self) -> None:
-        try:
-            self.samples.append(os.getloadavg()[0])
-        except (OSError, AttributeError):
-            pass
-
-    def run(self) -> None:
-        self.sample()
-        while not self.stop.wait(self.every):
-            self.sample()
-
-    def summary(self) -> dict:
-        s = self.samples
-        return {"n": len(s), "median": statistics.median(s), "min": min(s), "max": max(s)} if s else {"n": 0}
-
-    def line(self, cores: int, jobs: int) -> str:
-        load = self.summary()
-        if not load["n"]:
-            return "load average not available"
-        text = f"1-minute load average during the run: median {load['median']:.1f}, range {load['min']:.1f}-{load['max']:.1f} on {cores} cores"
-        if load["median"] > jobs + 0.5 * cores:  # more than this benchmark's own runs: other work shared the machine
-            text += " (a shared machine: other processes ran beside the benchmark, so times are slower and noisier than on an idle one)"
-        return text
+    cores = os.cpu_count() or 1
+    threads = max(1, cores // jobs)
+    return machine_line("; one run at a time" if jobs == 1 else f"; {jobs} runs at a time, {threads} thread{'s' if threads > 1 else ''} each")
 
 
 # ------------------------------------------------------------------ driver
@@ -346,7 +308,7 @@ def main() -> int:
         "",
         f"Machine: {_machine_line(jobs)}.",
         "",
-        f"Load: {load.line(cores, jobs)}.",
+        f"Load: {load.line(cores, jobs + 0.5 * cores)}.",
     ])
     table = _table(rows, header)
     os.makedirs(args.out, exist_ok=True)

@@ -24,12 +24,11 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import subprocess
 import sys
 import time
 
-from common import emit, peak_rss_mb  # bench/ is on sys.path when run as a script
+from common import LoadSampler, emit, machine_line, peak_rss_mb  # bench/ is on sys.path when run as a script
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 GARDEN = os.path.join(HERE, "..", "..", "shared", "data", "test_garden.npz")
@@ -209,14 +208,6 @@ def _run(gaussians: int, scale: float, threads: int, args) -> dict:
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
-def _machine() -> str:
-    try:
-        load = os.getloadavg()[0]
-    except OSError:
-        load = float("nan")
-    return f"{platform.machine()}, {os.cpu_count()} cores, load average {load:.1f} at the end of the run"
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", default=CASES, help=f"comma-separated GAUSSIANS:SCALE (default {CASES}; scale 1 = 648x420)")
@@ -243,13 +234,19 @@ def main() -> None:
     except ValueError:
         parser.error("--cases takes GAUSSIANS:SCALE pairs and --threads integers")
     results = []
+    load = LoadSampler()
+    load.start()
     for gaussians, scale in cases:
         for t in threads:
             r = _run(gaussians, scale, t, args)
             results.append(r)
             print(f"{r['gaussians']:,} Gaussians {r['width']}x{r['height']} {t} thread(s): {r['ms_per_step']:,.0f} ms/step, "
                   f"peak {r['peak_mb']:,.0f} MB", file=sys.stderr, flush=True)
-    lines = [f"Machine: {_machine()}; median of {args.steps} steps after 2 warm-up steps, vanilla, SH degree 3 active.", "",
+    load.stop.set()
+    load.join()
+    cores = os.cpu_count() or 1
+    lines = [f"Machine: {machine_line()}. Load: {load.line(cores, max(threads) + 0.5 * cores)}.", "",
+             f"Median of {args.steps} steps after 2 warm-up steps, vanilla, SH degree 3 active.", "",
              "| Gaussians | image | threads | ms per step | speed-up vs 1 thread | peak RSS (MB) |", "|---:|---|---:|---:|---:|---:|"]
     for r in results:
         one = next((x for x in results if x["gaussians"] == r["gaussians"] and x["width"] == r["width"] and x["threads"] == 1), None)
