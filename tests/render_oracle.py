@@ -2,7 +2,8 @@
 independently of mlx3d.render (loops, no tiles shared), for small test scenes.
 
 EWA projection with the frustum clamp, blur, radius = ceil(3 sqrt(λmax)),
-tile rule and the per-pixel front-to-back loop of the README's conventions.
+tile rule and the per-pixel front-to-back loop of the README's conventions,
+optionally with a surface layer (mlx3d.render.surface) composited in depth order.
 """
 
 import math
@@ -49,8 +50,16 @@ def project_one(cam, mean, quat, scale, blur=0.3):
     return mean2d, conic, radius, z
 
 
-def render(cam, means, quats, scales, opacities, colors, background=None, tile=16):
-    """(image (H,W,3), alpha (H,W)) in float64."""
+def _surface_event(c, T, surface, i, j):
+    """(c, T) after the surface layer (color (H,W,3), alpha (H,W), depth (H,W)) at pixel (i, j)."""
+    color, alpha, _ = surface
+    return c + T * np.asarray(color[i, j], np.float64), T * (1.0 - float(alpha[i, j]))
+
+
+def render(cam, means, quats, scales, opacities, colors, background=None, tile=16, surface=None):
+    """(image (H,W,3), alpha (H,W)) in float64. surface: None or numpy (color, alpha, depth), composited
+    just before the first Gaussian with depth >= depth[i, j] (after the last if none) unless the pixel
+    stopped; the pixel stops when the surface leaves T < 1e-4."""
     n = len(means)
     proj = [project_one(cam, means[i], quats[i], scales[i]) for i in range(n)]
     image = np.zeros((cam.height, cam.width, 3))
@@ -63,7 +72,14 @@ def render(cam, means, quats, scales, opacities, colors, background=None, tile=1
                 if r > 0 and math.floor((m2[0] - r) / tile) <= tx <= math.floor((m2[0] + r) / tile) and math.floor((m2[1] - r) / tile) <= ty <= math.floor((m2[1] + r) / tile):
                     hits.append((np.float32(z), g))
             T, c = 1.0, np.zeros(3)
-            for _, g in sorted(hits):
+            pending, stopped = surface is not None, False
+            for z, g in sorted(hits):
+                if pending and z >= surface[2][i, j]:
+                    pending = False
+                    c, T = _surface_event(c, T, surface, i, j)
+                    if T < 1e-4:
+                        stopped = True
+                        break
                 m2, (a, b, cc), _, _ = proj[g]
                 dx, dy = m2[0] - (j + 0.5), m2[1] - (i + 0.5)
                 power = -0.5 * (a * dx * dx + cc * dy * dy) - b * dx * dy
@@ -73,9 +89,12 @@ def render(cam, means, quats, scales, opacities, colors, background=None, tile=1
                 if al < 1 / 255:
                     continue
                 if T * (1 - al) < 1e-4:
+                    stopped = True
                     break
                 c += colors[g] * al * T
                 T *= 1 - al
+            if pending and not stopped:
+                c, T = _surface_event(c, T, surface, i, j)
             image[i, j] = c + (T * np.asarray(background) if background is not None else 0)
             alpha_img[i, j] = 1 - T
     return image, alpha_img

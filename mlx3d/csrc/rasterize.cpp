@@ -12,6 +12,8 @@
 // `last` is 3DGS's n_contrib: 1 + the position, inside the pixel's tile range,
 // of the last Gaussian that contributed (0 when none did). The backward pass
 // walks entries [0, last) of the tile range back to front.
+// RasterizeForward's forward-only surface variant also composites a per-pixel
+// surface layer in depth order (see "surface layer"); same outputs.
 //
 // Work layout. Each Gaussian is first packed into a 64-byte Splat record
 // (mean, conic, opacity, up to 4 features and its "reach", see "sub-tile
@@ -188,6 +190,14 @@ struct alignas(64) Splat {
 };
 static_assert(sizeof(Splat) == 64, "one cache line per Splat");
 
+// The surface layer of RasterizeForward's surface variant (see "surface layer").
+struct SurfaceIn {
+  const float* depths = nullptr;  // (N,) the Gaussians' camera z, the binning's sort key
+  const float* color = nullptr;   // (H,W,C) premultiplied
+  const float* alpha = nullptr;   // (H,W)
+  const float* depth = nullptr;   // (H,W) camera z; +inf: after every entry
+};
+
 struct Inputs {
   const float* means = nullptr;
   const float* conics = nullptr;
@@ -197,6 +207,7 @@ struct Inputs {
   const int32_t* ids = nullptr;
   const int64_t* ranges = nullptr;  // sanitised tile_offsets (see sanitise_offsets)
   const Splat* splats = nullptr;    // (N,) see make_splat
+  SurfaceIn surface;                // the surface variant only
 };
 
 // tile_offsets clamped to [0, M] and made non-decreasing, so that tile ranges
@@ -437,6 +448,7 @@ struct Scratch {
   std::vector<int32_t> block_kmax;              // backward: entries each block walks
   std::vector<uint8_t> done;                    // forward: blocks whose pixels all stopped
   std::vector<int32_t> span_lo, span_hi;        // one entry's column spans, per tile row
+  std::vector<float> entry_depth;               // forward with a surface: the tile's entries' depths
 
   // `count` zeroed lane vectors in `buf`, 32-byte aligned. (alignof of a
   // 32-byte vector type is 16 outside AVX code, so std::vector<LF> would not do.)
@@ -548,21 +560,91 @@ RM_INLINE void rect_pixels(const TileBox& box, int bx, int by, LF& px, LF& py, L
 }
 
 // Forward state of one pixel block in Scratch::lane: px, py, T, active (mask),
-// nlast (int lanes), then accum per channel.
+// nlast (int lanes), then accum per channel; with a surface then sidx (int
+// lanes), surface alpha, passed (mask) and the surface colour per channel.
 constexpr int kBlockFixed = 5;
+constexpr int kSurfaceFixed = 3;
+template <bool kSurface>
+constexpr int block_stride(int C) {
+  return kBlockFixed + C + (kSurface ? kSurfaceFixed + C : 0);
+}
+
+// ---------------------------------------------------------- surface layer
+// The surface variant composites a per-pixel layer (premultiplied colour s_c,
+// alpha s_a, camera depth d) with the Gaussians, in depth order. A tile's
+// entries are sorted by the Gaussians' depths, so each pixel's surface sits
+// just before tile position sidx = the first entry with depth >= d (n: after
+// the last). Before entry sidx (or at the end of the tile), a pixel that has
+// not stopped takes
+//   accum += T * s_c;  T = T * (1 - s_a);  stop if T < RM_T_MIN,
+// and goes on over the entries behind it with the reduced T. Entries left out
+// of a block's lists (culling) are ones every lane skips, so the surface is
+// taken before the next listed entry at or after sidx, with the same result.
+// sidx comes from a binary search per pixel, which gives the same result for
+// every lane width and thread count.
+
+// The surface event on lanes `at` (masks), as above.
+template <class LF, class LI>
+RM_INLINE void surface_event(const LI& at, const LF* color, const LF& s_alpha, int C, LF& T, LI& active, LI& passed,
+                             LF* acc) {
+  for (int ch = 0; ch < C; ++ch) acc[ch] = at ? acc[ch] + T * color[ch] : acc[ch];
+  T = at ? rm_next_T(T, s_alpha) : T;
+  passed = passed | at;
+  active = active & ((at == 0) | ((T < RM_T_MIN) == 0));
+}
+
+// Surface fields of a block whose lanes cover pixels pix (-1: outside the
+// image, never active): sidx by binary search over the tile's n sorted entry
+// depths, alpha and colour. `passed` stays 0 (the state is zeroed).
+template <class LF, class LI>
+RM_INLINE void init_surface(const SurfaceIn& sf, int C, const float* entry_depth, int n, const int64_t* pix,
+                            LF* surf) {
+  constexpr int kLanes = lanes_of<LF>();
+  int32_t sidx[kLanes];
+  float v[kLanes];
+  for (int l = 0; l < kLanes; ++l) {
+    const float d = pix[l] >= 0 ? sf.depth[pix[l]] : std::numeric_limits<float>::infinity();
+    sidx[l] = static_cast<int32_t>(
+        std::partition_point(entry_depth, entry_depth + n, [d](float z) { return z < d; }) - entry_depth);
+    v[l] = pix[l] >= 0 ? sf.alpha[pix[l]] : 0.0f;
+  }
+  store_lanes(&surf[0], load_lanes<LI>(sidx));
+  surf[1] = load_lanes<LF>(v);
+  for (int ch = 0; ch < C; ++ch) {
+    for (int l = 0; l < kLanes; ++l) v[l] = pix[l] >= 0 ? sf.color[pix[l] * C + ch] : 0.0f;
+    surf[kSurfaceFixed + ch] = load_lanes<LF>(v);
+  }
+}
+
+// The surface event of the lanes that are still active after every entry.
+template <class LF, class LI>
+RM_INLINE void finish_surface(LF* sb, int C) {
+  LF* surf = sb + kBlockFixed + C;
+  LF T = sb[2];
+  LI active = load_lanes<LI>(&sb[3]);
+  LI passed = load_lanes<LI>(&surf[2]);
+  surface_event(active & (passed == 0), surf + kSurfaceFixed, surf[1], C, T, active, passed, sb + kBlockFixed);
+  sb[2] = T;
+  store_lanes(&sb[3], active);
+  store_lanes(&surf[2], passed);
+}
+
 // Tile entries are listed per block in chunks of this many, so that a tile
 // whose pixels all stop early does not list the rest.
 constexpr int kForwardChunk = 64;
 
 // Runs block state `sb` over tile entries list[0..count) (in order); returns
 // false when all of the block's pixels have stopped.
-template <class LF, class LI, int CC>
+template <class LF, class LI, int CC, bool kSurface>
 RM_INLINE bool composite_block(const Scratch& s, LF* sb, int C, const int32_t* list, int count) {
   const LI izero{};
   const LF px = sb[0], py = sb[1];
   LF T = sb[2];
   LI active = load_lanes<LI>(&sb[3]);
   LI nlast = load_lanes<LI>(&sb[4]);
+  LF* const surf = sb + kBlockFixed + C;
+  const LI sidx = kSurface ? load_lanes<LI>(&surf[0]) : izero;
+  LI passed = kSurface ? load_lanes<LI>(&surf[2]) : izero;
   LF acc_reg[CC > 0 ? CC : 1];
   LF* acc = sb + kBlockFixed;
   if constexpr (CC > 0) {
@@ -586,6 +668,10 @@ RM_INLINE bool composite_block(const Scratch& s, LF* sb, int C, const int32_t* l
     }
     for (int j = 0; j < nb; ++j) {
       const int k = list[i0 + j];
+      if constexpr (kSurface) {
+        const LI at = active & (passed == 0) & ((izero + k) >= sidx);
+        if (any_lane(at)) surface_event(at, surf + kSurfaceFixed, surf[1], C, T, active, passed, acc);
+      }
       const LF alpha = alphas[j];
       const LF next_T = rm_next_T(T, alpha);
       const LI goes_on = (next_T < RM_T_MIN) == 0;  // a skipped Gaussian keeps T >= RM_T_MIN
@@ -605,12 +691,13 @@ RM_INLINE bool composite_block(const Scratch& s, LF* sb, int C, const int32_t* l
   sb[2] = T;
   store_lanes(&sb[3], active);
   store_lanes(&sb[4], nlast);
+  if constexpr (kSurface) store_lanes(&surf[2], passed);
   if constexpr (CC > 0)
     for (int ch = 0; ch < CC; ++ch) sb[kBlockFixed + ch] = acc_reg[ch];
   return live;
 }
 
-template <class LF, class LI, int CC>
+template <class LF, class LI, int CC, bool kSurface>
 RM_INLINE void forward_tile_impl(const Inputs& in, const Geometry& geo, int t, Scratch& s, const ForwardOut& out) {
   constexpr int kLanes = lanes_of<LF>();
   constexpr int kH = block_h<kLanes>(), kW = kLanes / kH;
@@ -621,11 +708,18 @@ RM_INLINE void forward_tile_impl(const Inputs& in, const Geometry& geo, int t, S
   const TileBox box = tile_box(geo, t);
   const int bw = (box.w + kW - 1) / kW, bh = (box.h + kH - 1) / kH;
   const int nb = bw * bh;  // block (bx, by) is number by * bw + bx
-  const int S = kBlockFixed + C;
+  const int S = block_stride<kSurface>(C);
   LF* st = Scratch::lanes<LF>(s.lane, static_cast<size_t>(nb) * S);  // zeroed: accum = 0
   const LF zero{};
   const LI izero{};
   int64_t pix[kLanes];
+  if constexpr (kSurface) {
+    s.entry_depth.resize(n);
+    for (int j = 0; j < n; ++j) {
+      const int64_t g = in.ids[lo + j];
+      s.entry_depth[j] = g >= 0 && g < geo.num_gaussians ? in.surface.depths[g] : std::numeric_limits<float>::infinity();
+    }
+  }
   for (int b = 0; b < nb; ++b) {
     LF* sb = st + static_cast<size_t>(b) * S;
     LI valid;
@@ -633,6 +727,7 @@ RM_INLINE void forward_tile_impl(const Inputs& in, const Geometry& geo, int t, S
     sb[2] = zero + 1.0f;
     store_lanes(&sb[3], valid);  // lanes outside the image never start
     store_lanes(&sb[4], izero);
+    if constexpr (kSurface) init_surface<LF, LI>(in.surface, C, s.entry_depth.data(), n, pix, sb + kBlockFixed + C);
   }
   s.reserve(n, C, box.h);
   s.done.assign(nb, 0);
@@ -664,12 +759,14 @@ RM_INLINE void forward_tile_impl(const Inputs& in, const Geometry& geo, int t, S
     for (int b = 0; b < nb; ++b) {
       if (done[b] || cnt[b] == 0) continue;
       LF* sb = st + static_cast<size_t>(b) * S;
-      if (!composite_block<LF, LI, CC>(s, sb, C, lists + static_cast<size_t>(b) * kForwardChunk, cnt[b])) {
+      if (!composite_block<LF, LI, CC, kSurface>(s, sb, C, lists + static_cast<size_t>(b) * kForwardChunk, cnt[b])) {
         done[b] = 1;
         --alive;
       }
     }
   }
+  if constexpr (kSurface)
+    for (int b = 0; b < nb; ++b) finish_surface<LF, LI>(st + static_cast<size_t>(b) * S, C);
   for (int b = 0; b < nb; ++b) {
     const LF* sb = st + static_cast<size_t>(b) * S;
     LF px, py;
@@ -878,9 +975,9 @@ using BaseF = float;
 using BaseI = int32_t;
 #endif
 
-template <int CC>
+template <int CC, bool kSurface>
 void forward_tile_base(const Inputs& in, const Geometry& geo, int t, Scratch& s, const ForwardOut& out) {
-  forward_tile_impl<BaseF, BaseI, CC>(in, geo, t, s, out);
+  forward_tile_impl<BaseF, BaseI, CC, kSurface>(in, geo, t, s, out);
 }
 template <int CC>
 void backward_tile_base(const Inputs& in, const Geometry& geo, int t, Scratch& s, const BackwardIn& bw, float* eg) {
@@ -888,10 +985,10 @@ void backward_tile_base(const Inputs& in, const Geometry& geo, int t, Scratch& s
 }
 
 #if defined(MLX3D_RASTER_AVX2)
-template <int CC>
+template <int CC, bool kSurface>
 __attribute__((target("avx2"))) void forward_tile_avx2(const Inputs& in, const Geometry& geo, int t, Scratch& s,
                                                        const ForwardOut& out) {
-  forward_tile_impl<LaneF8, LaneI8, CC>(in, geo, t, s, out);
+  forward_tile_impl<LaneF8, LaneI8, CC, kSurface>(in, geo, t, s, out);
 }
 template <int CC>
 __attribute__((target("avx2"))) void backward_tile_avx2(const Inputs& in, const Geometry& geo, int t, Scratch& s,
@@ -923,15 +1020,22 @@ Fn pick_channels(const Fn (&fns)[kMaxFixedChannels + 1], int channels) {
   return channels >= 1 && channels <= kMaxFixedChannels ? fns[channels] : fns[0];
 }
 
-ForwardTileFn pick_forward(int channels) {
+// The forward tile kernel for `channels`, plain or with a surface layer.
+ForwardTileFn pick_forward(int channels, bool surface) {
 #if defined(MLX3D_RASTER_AVX2)
-  static const ForwardTileFn avx2[] = {forward_tile_avx2<0>, forward_tile_avx2<1>, forward_tile_avx2<2>,
-                                       forward_tile_avx2<3>, forward_tile_avx2<4>};
-  if (use_avx2()) return pick_channels(avx2, channels);
+  static const ForwardTileFn avx2[2][kMaxFixedChannels + 1] = {
+      {forward_tile_avx2<0, false>, forward_tile_avx2<1, false>, forward_tile_avx2<2, false>,
+       forward_tile_avx2<3, false>, forward_tile_avx2<4, false>},
+      {forward_tile_avx2<0, true>, forward_tile_avx2<1, true>, forward_tile_avx2<2, true>, forward_tile_avx2<3, true>,
+       forward_tile_avx2<4, true>}};
+  if (use_avx2()) return pick_channels(avx2[surface], channels);
 #endif
-  static const ForwardTileFn base[] = {forward_tile_base<0>, forward_tile_base<1>, forward_tile_base<2>,
-                                       forward_tile_base<3>, forward_tile_base<4>};
-  return pick_channels(base, channels);
+  static const ForwardTileFn base[2][kMaxFixedChannels + 1] = {
+      {forward_tile_base<0, false>, forward_tile_base<1, false>, forward_tile_base<2, false>,
+       forward_tile_base<3, false>, forward_tile_base<4, false>},
+      {forward_tile_base<0, true>, forward_tile_base<1, true>, forward_tile_base<2, true>, forward_tile_base<3, true>,
+       forward_tile_base<4, true>}};
+  return pick_channels(base[surface], channels);
 }
 
 BackwardTileFn pick_backward(int channels) {
@@ -965,7 +1069,7 @@ std::vector<Splat> make_splats(const Inputs& in, const Geometry& geo, int thread
   return splats;
 }
 
-void run_forward(Inputs in, const Geometry& geo, int num_threads, const ForwardOut& out) {
+void run_forward(Inputs in, const Geometry& geo, int num_threads, const ForwardOut& out, bool surface) {
   const std::vector<int64_t> ranges = sanitise_offsets(in.offsets, geo);
   in.ranges = ranges.data();
   const int tiles = geo.num_tiles();
@@ -973,7 +1077,7 @@ void run_forward(Inputs in, const Geometry& geo, int num_threads, const ForwardO
   const std::vector<Splat> splats = make_splats(in, geo, threads);
   in.splats = splats.data();
   std::vector<Scratch> scratch(threads);
-  const ForwardTileFn forward_tile = pick_forward(geo.channels);
+  const ForwardTileFn forward_tile = pick_forward(geo.channels, surface);
   parallel_tiles(0, tiles, threads, scratch,
                  [&](int t, Scratch& s) { forward_tile(in, geo, t, s, out); });
 }
@@ -1101,18 +1205,24 @@ class RasterizeBackward : public mx::Primitive {
   int width_, height_, tile_, num_threads_;
 };
 
+// With `surface`, the forward-only variant that composites a surface layer
+// (extra inputs: depths (N,), surface colour (H,W,C), alpha (H,W), depth (H,W)).
 class RasterizeForward : public mx::Primitive {
  public:
-  RasterizeForward(mx::Stream stream, int width, int height, int tile, int num_threads)
-      : mx::Primitive(stream), width_(width), height_(height), tile_(tile), num_threads_(num_threads) {}
+  RasterizeForward(mx::Stream stream, int width, int height, int tile, int num_threads, bool surface = false)
+      : mx::Primitive(stream), width_(width), height_(height), tile_(tile), num_threads_(num_threads), surface_(surface) {}
 
   void eval_cpu(const std::vector<mx::array>& inputs, std::vector<mx::array>& outputs) override {
     auto& encoder = prepare_outputs(*this, inputs, outputs);
     Inputs in = input_pointers(inputs);
+    if (surface_)
+      in.surface = {inputs[6].data<float>(), inputs[7].data<float>(), inputs[8].data<float>(), inputs[9].data<float>()};
     const Geometry geo = make_geometry(width_, height_, tile_, inputs[0].shape(0), inputs[2].shape(1), inputs[5].size());
     ForwardOut out{outputs[0].data<float>(), outputs[1].data<float>(), outputs[2].data<int32_t>(),
                    outputs[3].data<float>()};
-    encoder.dispatch([in, geo, out, threads = num_threads_]() { run_forward(in, geo, threads, out); });
+    encoder.dispatch([in, geo, out, threads = num_threads_, surface = surface_]() {
+      run_forward(in, geo, threads, out, surface);
+    });
   }
 
   void eval_gpu(const std::vector<mx::array>&, std::vector<mx::array>&) override {
@@ -1124,6 +1234,10 @@ class RasterizeForward : public mx::Primitive {
   // flatten_ids are integer inputs and get zero cotangents.
   std::vector<mx::array> vjp(const std::vector<mx::array>& primals, const std::vector<mx::array>& cotangents,
                              const std::vector<int>& argnums, const std::vector<mx::array>& outputs) override {
+    if (surface_)
+      throw std::runtime_error(
+          "RasterizeSurfaceForward: compositing over a surface is forward-only (no gradients); render without "
+          "`surface` to differentiate.");
     auto s = stream();
     bool need = false;
     for (int a : argnums) need |= a < 4;
@@ -1158,23 +1272,23 @@ class RasterizeForward : public mx::Primitive {
     return {{height_, width_, C}, {height_, width_}, {height_, width_}, {height_, width_}};
   }
 
-  const char* name() const override { return "RasterizeForward"; }
+  const char* name() const override { return surface_ ? "RasterizeSurfaceForward" : "RasterizeForward"; }
 
   bool is_equivalent(const mx::Primitive& other) const override {
     const auto* o = dynamic_cast<const RasterizeForward*>(&other);
-    return o && o->width_ == width_ && o->height_ == height_ && o->tile_ == tile_ && o->num_threads_ == num_threads_;
+    return o && o->width_ == width_ && o->height_ == height_ && o->tile_ == tile_ && o->num_threads_ == num_threads_ &&
+           o->surface_ == surface_;
   }
 
  private:
   int width_, height_, tile_, num_threads_;
+  bool surface_;
 };
 
-// The op: validates shapes/dtypes, makes the inputs row-contiguous and returns
-// the four lazily evaluated outputs (accum, alpha, last, final_T).
-std::vector<mx::array> rasterize_forward(const mx::array& means2d, const mx::array& conics, const mx::array& features,
-                                         const mx::array& opacities, const mx::array& tile_offsets,
-                                         const mx::array& flatten_ids, int width, int height, int tile_size,
-                                         int num_threads) {
+// Checks the plain rasterizer inputs' shapes, dtypes and sizes.
+void check_forward_inputs(const mx::array& means2d, const mx::array& conics, const mx::array& features,
+                          const mx::array& opacities, const mx::array& tile_offsets, const mx::array& flatten_ids,
+                          int width, int height, int tile_size, int num_threads) {
   check(width >= 1 && height >= 1,
         "width and height must be >= 1, got " + std::to_string(width) + " x " + std::to_string(height));
   check(tile_size >= 1, "tile_size must be >= 1, got " + std::to_string(tile_size));
@@ -1196,15 +1310,58 @@ std::vector<mx::array> rasterize_forward(const mx::array& means2d, const mx::arr
     check(a->dtype() == mx::float32, "float inputs must be float32 (the Python wrapper casts them)");
   check(tile_offsets.dtype() == mx::int32, "tile_offsets must be int32");
   check(flatten_ids.dtype() == mx::int32, "flatten_ids must be int32");
+}
 
+// The forward primitive's lazily evaluated outputs (accum, alpha, last, final_T) on row-contiguous copies of `args`.
+std::vector<mx::array> make_forward(const std::vector<const mx::array*>& args, int width, int height, int tile_size,
+                                    int num_threads, bool surface) {
   auto s = mx::default_stream(mx::Device::cpu);
   std::vector<mx::array> inputs;
-  for (const auto* a : {&means2d, &conics, &features, &opacities, &tile_offsets, &flatten_ids})
-    inputs.push_back(mx::contiguous(*a, false, s));
-  const int C = features.shape(1);
+  for (const auto* a : args) inputs.push_back(mx::contiguous(*a, false, s));
+  const int C = args[2]->shape(1);
   return mx::array::make_arrays({{height, width, C}, {height, width}, {height, width}, {height, width}},
                                 {mx::float32, mx::float32, mx::int32, mx::float32},
-                                std::make_shared<RasterizeForward>(s, width, height, tile_size, num_threads), inputs);
+                                std::make_shared<RasterizeForward>(s, width, height, tile_size, num_threads, surface),
+                                inputs);
+}
+
+// The op: validates shapes/dtypes, makes the inputs row-contiguous and returns
+// the four lazily evaluated outputs (accum, alpha, last, final_T).
+std::vector<mx::array> rasterize_forward(const mx::array& means2d, const mx::array& conics, const mx::array& features,
+                                         const mx::array& opacities, const mx::array& tile_offsets,
+                                         const mx::array& flatten_ids, int width, int height, int tile_size,
+                                         int num_threads) {
+  check_forward_inputs(means2d, conics, features, opacities, tile_offsets, flatten_ids, width, height, tile_size,
+                       num_threads);
+  return make_forward({&means2d, &conics, &features, &opacities, &tile_offsets, &flatten_ids}, width, height,
+                      tile_size, num_threads, false);
+}
+
+// The surface variant's op (forward-only): the plain inputs, then the
+// Gaussians' depths (N,) and the surface colour (H,W,C), alpha (H,W), depth (H,W).
+std::vector<mx::array> rasterize_forward_surface(const mx::array& means2d, const mx::array& conics,
+                                                 const mx::array& features, const mx::array& opacities,
+                                                 const mx::array& tile_offsets, const mx::array& flatten_ids,
+                                                 const mx::array& depths, const mx::array& surface_color,
+                                                 const mx::array& surface_alpha, const mx::array& surface_depth,
+                                                 int width, int height, int tile_size, int num_threads) {
+  check_forward_inputs(means2d, conics, features, opacities, tile_offsets, flatten_ids, width, height, tile_size,
+                       num_threads);
+  const std::string hw = "(" + std::to_string(height) + ", " + std::to_string(width);
+  check(depths.ndim() == 1 && depths.shape(0) == means2d.shape(0),
+        "depths must have shape (N,) = (" + std::to_string(means2d.shape(0)) + ",), got " + shape_str(depths));
+  check(surface_color.ndim() == 3 && surface_color.shape(0) == height && surface_color.shape(1) == width &&
+            surface_color.shape(2) == features.shape(1),
+        "surface_color must have shape (H, W, C) = " + hw + ", " + std::to_string(features.shape(1)) + "), got " +
+            shape_str(surface_color));
+  for (const auto* a : {&surface_alpha, &surface_depth})
+    check(a->ndim() == 2 && a->shape(0) == height && a->shape(1) == width,
+          "surface_alpha and surface_depth must have shape (H, W) = " + hw + "), got " + shape_str(*a));
+  for (const auto* a : {&depths, &surface_color, &surface_alpha, &surface_depth})
+    check(a->dtype() == mx::float32, "float inputs must be float32 (the Python wrapper casts them)");
+  return make_forward({&means2d, &conics, &features, &opacities, &tile_offsets, &flatten_ids, &depths, &surface_color,
+                       &surface_alpha, &surface_depth},
+                      width, height, tile_size, num_threads, true);
 }
 
 }  // namespace
@@ -1219,6 +1376,13 @@ void bind_rasterize(nb::module_& m) {
         "inputs). float32 means2d (N,2), conics (N,3), features (N,C), opacities (N,); int32 tile_offsets\n"
         "(tiles+1,), flatten_ids (M,). Returns [accum (H,W,C), alpha (H,W), last (H,W) int32, final_T (H,W)].\n"
         "Use mlx3d.render.raster_cpu.rasterize_cpu, which validates and casts its inputs.");
+  m.def("rasterize_forward_surface", &rasterize_forward_surface, "means2d"_a, "conics"_a, "features"_a, "opacities"_a,
+        "tile_offsets"_a, "flatten_ids"_a, "depths"_a, "surface_color"_a, "surface_alpha"_a, "surface_depth"_a,
+        "width"_a, "height"_a, "tile_size"_a = 16, "num_threads"_a = 0,
+        "rasterize_forward composited in depth order with a per-pixel surface layer (forward-only): float32 depths\n"
+        "(N,) the Gaussians' camera z (the binning's sort key), surface_color (H,W,C) premultiplied, surface_alpha\n"
+        "(H,W), surface_depth (H,W) camera z (+inf: behind every Gaussian). Returns [accum, alpha, last, final_T].\n"
+        "Use mlx3d.render.raster_cpu.rasterize_cpu_surface.");
 }
 
 }  // namespace mlx3d

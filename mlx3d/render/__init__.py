@@ -10,7 +10,9 @@ additions are keyword-only. The renderer's own stages work on the structured
 forms ``Projection`` (``project_ewa``, ``project_ut``) and ``Bins``
 (``bin_tiles``, ``composite``). Rasterizer backends: 'cpu' (C++ MLX
 primitive, threaded over tiles), 'metal' (Apple GPUs), 'reference' (pure MLX,
-the test oracle); 'auto' takes Metal when available. Conventions (pixel
+the test oracle); 'auto' takes Metal when available. ``Surface`` is a
+per-pixel layer (e.g. a mesh render with depth) that ``render_gaussians``
+composites with the splats in depth order. Conventions (pixel
 centres at +0.5, OpenCV camera axes) are in the README.
 """
 
@@ -26,12 +28,14 @@ from .pipeline import (
 )
 from .projection import Projection, project_ewa, project_gaussians, project_gaussians_ut, project_ut, quat_scale_to_cov3d
 from .rasterize import composite, composite_features, rasterize, rasterize_depth, rasterize_features, resolve_backend
+from .surface import Surface
 
 __all__ = [
     "TILE_SIZE",
     "Bins",
     "Projection",
     "RenderPlan",
+    "Surface",
     "bin_gaussians",
     "bin_tiles",
     "bins_from_ranges",

@@ -4,7 +4,9 @@ Effects on demand: ``plan_render`` decides from the scene, camera and options
 which stages run — EWA or unscented projection (UT only for cameras EWA cannot
 represent, or when asked), SH evaluation only up to the degree present and
 none for plain colours, the geometry channels (depth, depth², normals) only
-when asked, the antialiasing compensation only when asked — and
+when asked, the antialiasing compensation only when asked, a surface layer
+composited as a background image when it has no finite depth and depth-tested
+otherwise (``surface``) — and
 ``render_gaussians`` returns that plan and the stages it actually ran, so tests
 and benchmarks can see the decision. Every channel asked for is composited in
 the same rasterization pass as the colour.
@@ -32,6 +34,7 @@ from .binning import TILE_SIZE, Bins, bin_tiles
 from .projection import project_ewa, project_ut
 from .rasterize import BACKENDS, CHUNK_SIZE, composite, composite_features, resolve_backend
 from .sh_color import sh_colors
+from .surface import Surface, composite_surface, surface_mode, surface_stages
 
 PROJECTIONS = ("auto", "ewa", "ut")
 
@@ -60,6 +63,7 @@ class RenderPlan:
     depth_variance: bool = False  # also composite depth² (implies depth)
     normals: bool = False
     planar_depth: bool = False  # surfel planes instead of centres (see geometry_channels)
+    surface: str | None = None  # None | 'behind' | 'depth_test' (see mlx3d.render.surface)
 
     @property
     def channels(self) -> tuple:
@@ -84,7 +88,7 @@ class RenderPlan:
             out.append(f"eval_sh_degree_{self.sh_degree}")
         if self.normals or self.planar_depth:
             out.append("gaussian_normals")
-        out.append("rasterize_" + "+".join(self.channels))
+        out.extend(surface_stages(self.surface, self.backend, "rasterize_" + "+".join(self.channels)))
         return tuple(out)
 
 
@@ -107,9 +111,13 @@ def _sh_degree_present(num_bases: int) -> int:
 def plan_render(
     camera, colors=None, sh=None, sh_degree: int = 3, projection: str = "auto", antialias: bool = False, render_depth: bool = False,
     backend: str = "auto", render_depth_variance: bool = False, render_normals: bool = False, planar_depth: bool = False,
+    surface: Surface | None = None,
 ) -> RenderPlan:
     """Decide the stages for a render (see the module docstring); raises ValueError for conflicts."""
     method = _projection_method(camera, projection)
+    mode = surface_mode(surface, camera)
+    if mode is not None and (render_depth or render_depth_variance or render_normals):
+        raise ValueError("render_depth, render_depth_variance and render_normals cannot be combined with surface= (the surface has colour only)")
     if (colors is None) == (sh is None):
         raise ValueError("pass exactly one of colors=(N,3) or sh=(N,K,3)")
     degree = None
@@ -117,7 +125,9 @@ def plan_render(
         degree = min(int(sh_degree), _sh_degree_present(sh.shape[1]))
     variance = bool(render_depth_variance)
     depth = bool(render_depth) or variance
-    return RenderPlan(method, degree, depth, bool(antialias), resolve_backend(backend), variance, bool(render_normals), bool(planar_depth) and depth)
+    return RenderPlan(
+        method, degree, depth, bool(antialias), resolve_backend(backend), variance, bool(render_normals), bool(planar_depth) and depth, mode
+    )
 
 
 def _project(camera, means, quats, scales, opacities, method: str, antialias: bool, blur, ran: list, backend: str):
@@ -177,8 +187,9 @@ def render_gaussians(
     render_normals: bool = False,
     planar_depth: bool = False,
     depth_reference: float | None = None,
+    surface: Surface | None = None,
 ) -> dict:
-    """Render Gaussians from ``camera``; differentiable w.r.t. every float input.
+    """Render Gaussians from ``camera``; differentiable w.r.t. every float input (not with a depth-tested ``surface``).
 
     The original mlx3D signature: means (N,3), quats (N,4) w,x,y,z, scales
     (N,3) std-devs, opacities (N,) in [0,1]; colour from ``colors`` (N,3) or
@@ -209,6 +220,14 @@ def render_gaussians(
     - ``planar_depth``: the depth of each Gaussian's plane (a surfel's) instead
       of its centre, see ``geometry_channels``.
 
+    ``surface``: a ``Surface`` (premultiplied colour (H,W,3), alpha, camera-z
+    depth) composited with the Gaussians in depth order, before the
+    background; ``alpha`` then includes its coverage. Forward-only where it
+    has a finite depth (stages ``...+surface_depth_test``; on the CPU kernel
+    for backend 'metal', stage ``surface_cpu_fallback``), a background image
+    otherwise (stage ``surface_behind``); not combinable with the geometry
+    channels. See ``mlx3d.render.surface``.
+
     Keyword-only additions: the geometry options above, ``backend`` ('auto',
     'cpu', 'metal', 'reference'), ``blur`` (pixels², 0.3), ``tile_size`` and
     ``means2d_offset``: optional (N,2) added to the projected 2D means. Pass
@@ -216,7 +235,9 @@ def render_gaussians(
     gradient that density control accumulates.
     """
     del refine_tiles  # see the docstring
-    plan = plan_render(camera, colors, sh, sh_degree, projection, antialias, render_depth, backend, render_depth_variance, render_normals, planar_depth)
+    plan = plan_render(
+        camera, colors, sh, sh_degree, projection, antialias, render_depth, backend, render_depth_variance, render_normals, planar_depth, surface
+    )
     ran = []
     proj, opac, bins = _project_and_bin(camera, means, quats, scales, opacities, plan.projection, plan.antialias, blur, tile_size, plan.backend, ran)
     if plan.sh_degree is not None:
@@ -236,8 +257,13 @@ def render_gaussians(
         bg = mx.array(background, dtype=mx.float32)
         if features.shape[1] > 3:
             bg = mx.concatenate([bg, mx.zeros((features.shape[1] - 3,))])
-    accum, alpha, last = composite(means2d, proj.conics, features, opac, bins, camera.width, camera.height, bg, plan.backend)
-    ran.append("rasterize_" + "+".join(plan.channels))
+    if plan.surface is None:
+        accum, alpha, last = composite(means2d, proj.conics, features, opac, bins, camera.width, camera.height, bg, plan.backend)
+    else:
+        accum, alpha, last = composite_surface(
+            means2d, proj.conics, features, opac, proj.depths, bins, camera.width, camera.height, surface, plan.surface, bg, plan.backend
+        )
+    ran.extend(surface_stages(plan.surface, plan.backend, "rasterize_" + "+".join(plan.channels)))
     out = {"image": accum[..., :3], "alpha": alpha, "final_T": 1.0 - alpha, "n_contrib": last}
     out.update(_projection_outputs(proj))
     out.update({"plan": plan, "stages": tuple(ran)})

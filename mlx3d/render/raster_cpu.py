@@ -8,6 +8,10 @@ respect to means2d, conics, features and opacities; tile_offsets and
 flatten_ids get zero gradients. Forward-mode (``mx.jvp``) and ``mx.vmap`` are
 not implemented.
 
+``rasterize_cpu_surface`` is the forward-only variant that composites a
+per-pixel surface layer (colour, alpha, depth) with the Gaussians in depth
+order (``mlx3d.render.surface``); its gradients raise.
+
 Both passes are threaded over tiles. The backward pass sums gradients per tile
 entry, then per Gaussian in flatten_ids order, so its results are bitwise
 identical for any thread count. Threads: :func:`set_num_threads` (default:
@@ -28,7 +32,7 @@ import threading
 import mlx.core as mx
 import numpy as np
 
-__all__ = ["rasterize_cpu", "set_num_threads", "get_num_threads", "prepare_inputs"]
+__all__ = ["rasterize_cpu", "rasterize_cpu_surface", "set_num_threads", "get_num_threads", "prepare_inputs"]
 
 _ENV_THREADS = "MLX3D_NUM_THREADS"
 _lock = threading.Lock()
@@ -196,3 +200,48 @@ def rasterize_cpu(
         means2d, conics, features, opacities, tile_offsets, flatten_ids, width, height, tile_size, threads
     )
     return accum, alpha, last
+
+
+def rasterize_cpu_surface(
+    means2d,
+    conics,
+    features,
+    opacities,
+    tile_offsets,
+    flatten_ids,
+    depths,
+    surface_color,
+    surface_alpha,
+    surface_depth,
+    width: int,
+    height: int,
+    tile_size: int = 16,
+    num_threads: int | None = None,
+):
+    """``rasterize_cpu`` composited with a surface layer in depth order (forward-only).
+
+    Extra arguments: depths (N,) the Gaussians' camera z (the binning's sort
+    key); surface_color (H, W, C) premultiplied; surface_alpha (H, W) in
+    [0, 1]; surface_depth (H, W) camera z, +inf where the surface lies behind
+    every Gaussian. Per pixel the surface is composited just before the first
+    tile entry with depth >= surface_depth (after the last if none), unless the
+    pixel has stopped: accum += T * colour, T *= 1 - alpha (stop if T < 1e-4).
+
+    Returns (accum (H, W, C), alpha (H, W) = 1 - final T including the
+    surface, last (H, W) int32) as ``rasterize_cpu``. Differentiating raises.
+    """
+    (means2d, conics, features, opacities, tile_offsets, flatten_ids, width, height, tile_size) = prepare_inputs(
+        means2d, conics, features, opacities, tile_offsets, flatten_ids, width, height, tile_size
+    )
+    surface = [_float32(a, name) for a, name in zip((depths, surface_color, surface_alpha, surface_depth), _SURFACE_INPUTS)]
+    threads = get_num_threads() if num_threads is None else _positive_int(num_threads, "num_threads", minimum=0)
+    from mlx3d import native
+
+    # shapes are checked by the op (ValueError naming the input)
+    accum, alpha, last, _final_t = native.core().rasterize_forward_surface(
+        means2d, conics, features, opacities, tile_offsets, flatten_ids, *surface, width, height, tile_size, threads
+    )
+    return accum, alpha, last
+
+
+_SURFACE_INPUTS = ("depths", "surface_color", "surface_alpha", "surface_depth")

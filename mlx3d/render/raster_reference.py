@@ -10,6 +10,14 @@ T_after_k ≥ 1e-4; since T only decreases, the contributors are a prefix of the
 non-skipped Gaussians, so T_before_k (exclusive product) is exactly the 3DGS
 transmittance, and the final T is the product over contributors.
 
+With a surface layer (``mlx3d.render.surface``), the Gaussians at or behind
+the surface's depth are those with depth >= d (a suffix of the depth-sorted
+list). The pixel reaches the surface iff T_front = Π over the Gaussians in
+front of (1 - α) is >= 1e-4 (T only decreases, so no Gaussian in front
+stopped it); it then adds T_front · colour, and every Gaussian behind sees
+its transmittances multiplied by (1 - surface alpha). Each pixel thus stops
+as the sequential rules say, including right after the surface.
+
 Tiles are processed in chunks whose (pixels × Gaussians) size is bounded by
 ``max_elements`` so memory stays bounded; it is still O(pixels × Gaussians per
 tile) work and meant for tests and small scenes.
@@ -25,19 +33,41 @@ ALPHA_MIN = 1.0 / 255.0
 T_MIN = 1e-4
 
 
+def _surface_per_tile(surface, tiles_x: int, tiles_y: int, tile_size: int):
+    """The surface's colour (tiles, P, C), alpha and depth (tiles, P) at each tile's pixels (row-major in the
+    tile, P = tile_size²); alpha 0 and depth +inf outside the image."""
+    height, width = surface.alpha.shape
+    pad = [(0, tiles_y * tile_size - height), (0, tiles_x * tile_size - width)]
+
+    def per_tile(a):
+        rest = tuple(a.shape[2:])
+        a = a.reshape(tiles_y, tile_size, tiles_x, tile_size, *rest).swapaxes(1, 2)
+        return a.reshape(tiles_x * tiles_y, tile_size * tile_size, *rest)
+
+    color = per_tile(mx.pad(surface.color, pad + [(0, 0)]))
+    return color, per_tile(mx.pad(surface.alpha, pad)), per_tile(mx.pad(surface.depth, pad, constant_values=float("inf")))
+
+
 def rasterize_reference(
-    means2d, conics, features, opacities, tile_offsets, flatten_ids, width: int, height: int, tile_size: int = 16, max_elements: int = 1 << 23
+    means2d, conics, features, opacities, tile_offsets, flatten_ids, width: int, height: int, tile_size: int = 16, max_elements: int = 1 << 23,
+    *, depths=None, surface=None,
 ):
     """Returns (accum (H,W,C) without background, alpha (H,W), last (H,W) int32) as MLX arrays,
-    ``last`` as in ``rasterize_cpu`` (1 + position of the last contributing entry in the tile's range, 0 if none)."""
+    ``last`` as in ``rasterize_cpu`` (1 + position of the last contributing entry in the tile's range, 0 if none).
+    With ``surface`` (an ``mlx3d.render.Surface``) and ``depths`` (N,) the Gaussians' camera z, the surface
+    layer is composited in depth order (module docstring); alpha then includes its coverage."""
     channels = features.shape[1]
     tiles_x = -(-width // tile_size)
     tiles_y = -(-height // tile_size)
+    layer = None if surface is None else _surface_per_tile(surface, tiles_x, tiles_y, tile_size)
     offsets = np.asarray(tile_offsets, dtype=np.int64)
     ids = np.asarray(flatten_ids, dtype=np.int64)
     counts = offsets[1:] - offsets[:-1]
-    if ids.size == 0:  # nothing to draw (also covers N == 0)
-        return mx.zeros((height, width, channels)), mx.zeros((height, width)), mx.zeros((height, width), dtype=mx.int32)
+    if ids.size == 0:  # no Gaussian to draw (also covers N == 0)
+        none = mx.zeros((height, width), dtype=mx.int32)
+        if surface is not None:
+            return surface.color, surface.alpha, none
+        return mx.zeros((height, width, channels)), mx.zeros((height, width)), none
     pix = tile_size * tile_size
     # pixel centres of one tile, row-major inside the tile
     local = np.stack(np.meshgrid(np.arange(tile_size), np.arange(tile_size), indexing="xy"), -1).reshape(-1, 2) + 0.5
@@ -72,11 +102,21 @@ def rasterize_reference(
         keep = valid[:, None, :] & (power <= 0) & (alpha >= ALPHA_MIN)
         alpha = mx.where(keep, alpha, 0.0)
         t_after = mx.cumprod(1.0 - alpha, axis=-1)
-        contributes = keep & (t_after >= T_MIN)
         t_before = mx.concatenate([mx.ones_like(t_after[..., :1]), t_after[..., :-1]], axis=-1)
+        if layer is not None:
+            s_color, s_alpha, s_depth = (a[mx.array(chunk)] for a in layer)  # (T,P,C), (T,P), (T,P)
+            behind = valid[:, None, :] & (depths[gather][:, None, :] >= s_depth[..., None])  # (T,P,G)
+            t_front = mx.prod(mx.where(behind, 1.0, 1.0 - alpha), axis=-1)  # (T,P)
+            s_weight = mx.where(t_front >= T_MIN, t_front, 0.0)  # 0: stopped before the surface
+            factor = mx.where(behind, 1.0 - s_alpha[..., None], 1.0)
+            t_after, t_before = t_after * factor, t_before * factor
+        contributes = keep & (t_after >= T_MIN)
         weight = mx.where(contributes, alpha * t_before, 0.0)  # (T,P,G)
         accum = weight @ features[gather]  # (T,P,G) @ (T,G,C) -> (T,P,C)
         t_final = mx.prod(mx.where(contributes, 1.0 - alpha, 1.0), axis=-1)
+        if layer is not None:
+            accum = accum + s_weight[..., None] * s_color
+            t_final = t_final * mx.where(s_weight > 0, 1.0 - s_alpha, 1.0)
         last = mx.max(mx.where(contributes, mx.arange(1, widest + 1, dtype=mx.int32), 0), axis=-1)  # (T,P)
         for row, tile in enumerate(chunk):
             tile_accum[tile] = accum[row]
