@@ -77,6 +77,7 @@ from mlx3d.meshing import SurfaceMesh
 from mlx3d.transforms import matrix_to_quaternion
 
 from .camera import camera_from_blender
+from .scene_settings import TemporarySettings
 
 # OpenGL camera axes (Blender) -> OpenCV camera axes (COLMAP): flip y and z.
 _GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -413,7 +414,7 @@ class CaptureSession:
             self.notes.append("the scene has no world and no lights: surfaces that do not emit light render black")
 
         self.frames: list = []  # (file name, mlx3d Camera)
-        self._saved: list = []  # (owner, attribute, original value), in the order they were set
+        self._settings = TemporarySettings()
         self._temp_camera = None
         self._selection = None
         self._started = False
@@ -421,10 +422,7 @@ class CaptureSession:
 
     # -- scene state
     def _set(self, owner, attr, value) -> None:
-        old = getattr(owner, attr)
-        if old != value:
-            self._saved.append((owner, attr, old))
-            setattr(owner, attr, value)
+        self._settings.set(owner, attr, value)
 
     def start(self) -> None:
         """Switch the render settings for the capture and add the temporary camera."""
@@ -433,7 +431,7 @@ class CaptureSession:
         self._started = True
         scene, render = self.scene, self.scene.render
         self._selection = ([o for o in self.view_layer.objects if o.select_get(view_layer=self.view_layer)], self.view_layer.objects.active)
-        self._saved.append((scene, "camera", scene.camera))
+        self._settings.keep(scene, "camera")  # the views set it
         for attr, value in [("engine", "CYCLES"), ("resolution_x", self.width), ("resolution_y", self.height),
                             ("resolution_percentage", 100), ("pixel_aspect_x", 1.0), ("pixel_aspect_y", 1.0),
                             ("film_transparent", self.transparent), ("use_border", False), ("use_compositing", False),
@@ -505,13 +503,7 @@ class CaptureSession:
         if self._closed:
             return
         self._closed = True
-        errors = []
-        for owner, attr, value in self._saved:  # forward order: media type before file format, view transform before look
-            try:
-                setattr(owner, attr, value)
-            except (AttributeError, TypeError, ValueError, ReferenceError) as exc:
-                errors.append(f"{attr}: {exc}")
-        self._saved.clear()
+        errors = self._settings.restore()
         if self._temp_camera is not None:
             obj, data = self._temp_camera
             self._temp_camera = None

@@ -17,7 +17,7 @@ import bpy
 from mlx3d.errors import Mlx3dError
 from mlx3d.io.mesh_ply import write_mesh_ply
 
-from . import capture, demo, train, workflows
+from . import capture, demo, scene_render, train, workflows
 
 
 def _print(messages) -> None:
@@ -99,10 +99,51 @@ def cmd_extract_mesh(args) -> None:
     _save_blend(args)
 
 
+ENGINES = {"CYCLES": ("CYCLES",), "EEVEE": ("BLENDER_EEVEE", "BLENDER_EEVEE_NEXT"), "WORKBENCH": ("BLENDER_WORKBENCH",)}
+
+
+def _set_engine(scene, name: str) -> None:
+    """Set the scene's render engine by its short name (the identifier differs between Blender versions)."""
+    for identifier in ENGINES[name]:
+        try:
+            scene.render.engine = identifier
+            return
+        except TypeError:
+            continue
+    raise ValueError(f"this Blender has no {name} render engine")
+
+
 def cmd_render(args) -> None:
+    from mlx3d.progress import ProgressLine
+
     bpy.ops.wm.open_mainfile(filepath=args.blend)
     scene = bpy.context.scene
-    _print(workflows.render_splats(list(scene.objects), scene, antialias=args.antialias, background=args.background, filepath=args.out)[1])
+    if args.engine:
+        _set_engine(scene, args.engine)
+    if args.samples is not None:
+        scene.cycles.samples = args.samples
+        if hasattr(scene, "eevee"):
+            scene.eevee.taa_render_samples = args.samples
+    if args.frames is None:
+        if not args.out.lower().endswith(".png"):
+            raise ValueError(f"--out must be a .png file for one frame (or pass --frames A-B and a folder), got {args.out}")
+        _print(scene_render.render_image(scene, filepath=args.out, antialias=args.antialias)[1])
+        return
+    job = scene_render.AnimationRender(scene, scene_render.parse_frames(args.frames), out_dir=args.out, antialias=args.antialias)
+    progress = ProgressLine("render")
+    try:
+        while not job.done:
+            job.step()
+            progress(len(job.written), job.total)
+    except KeyboardInterrupt:
+        messages = job.close()
+        _print(messages)
+        print(f"blender_splat render: cancelled; the {len(job.written)} frames written are kept", file=sys.stderr)
+        raise SystemExit(130) from None
+    except BaseException:
+        job.close()
+        raise
+    _print(job.close() + [job.summary()])
 
 
 def cmd_capture(args) -> None:
@@ -196,11 +237,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--trim", type=float, default=None, help=f"remove surface farther than this many voxels from any splat, 0 for off (default {workflows.DEFAULT_TRIM:g})")
     p.add_argument("--save-blend", metavar="OUT.blend", help="also save the scene with the splat object and the mesh object")
 
-    p = add("render", cmd_render, "Render the splat objects of a .blend from its scene camera to a PNG.")
+    text = ("Render a .blend's scene from its camera: Blender's objects with the scene's engine, the splat objects with "
+            "mlx3d, composited by depth; one frame to a PNG, or a frame range into a folder in the scene's output format.")
+    p = add("render", cmd_render, text)
     p.add_argument("--blend", required=True, metavar="IN.blend")
-    p.add_argument("--out", required=True, metavar="OUT.png")
-    p.add_argument("--antialias", action="store_true")
-    p.add_argument("--background", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("R", "G", "B"))
+    p.add_argument("--out", required=True, metavar="OUT", help="a .png for one frame; with --frames, the output folder (default naming and format: the scene's)")
+    p.add_argument("--frames", metavar="A-B", help="render frames A to B (inclusive) instead of the current frame")
+    p.add_argument("--engine", choices=sorted(ENGINES), help="render engine for Blender's objects (default: the scene's)")
+    p.add_argument("--samples", type=_positive_int, help="render samples (default: the scene's)")
+    p.add_argument("--antialias", action="store_true", help="Mip-Splatting opacity compensation for the splats")
 
     p = add("compact", cmd_compact, "Compact a PLY: keep the most important splats, truncate SH.")
     p.add_argument("input", metavar="IN.ply")

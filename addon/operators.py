@@ -12,7 +12,7 @@ import bpy
 from bpy.props import BoolProperty, CollectionProperty, EnumProperty, FloatProperty, FloatVectorProperty, IntProperty, IntVectorProperty, StringProperty
 from bpy_extras.io_utils import ExportHelper, ImportHelper
 
-from . import benchmark, capture, ellipsoids, train, workflows
+from . import benchmark, capture, ellipsoids, scene_render, train, workflows
 from .splat_object import is_splat_object
 
 # Folder settings that may start with "//" (relative to the .blend); Blender 5.0 asks for the flag.
@@ -237,43 +237,6 @@ class MLX3D_OT_show_ellipsoids(bpy.types.Operator):
     def execute(self, context):
         ellipsoids.set_ellipsoids(context.active_object, self.show)
         return {"FINISHED"}
-
-
-class MLX3D_OT_render(bpy.types.Operator):
-    """Render splat objects from the scene camera with mlx3d into the image 'MLX3D Render'"""
-
-    bl_idname = "mlx3d.render"
-    bl_label = "Render Splats"
-    bl_options = {"REGISTER"}
-
-    selected_only: BoolProperty(name="Selected only", default=False, description="Render only selected splat objects (else all)")
-    antialias: BoolProperty(name="Antialias", default=False, description="Mip-Splatting opacity compensation for the 2D blur")
-    background: FloatVectorProperty(name="Background", subtype="COLOR", size=3, min=0.0, max=1.0, default=(0.0, 0.0, 0.0))
-    filepath: StringProperty(name="Save to", subtype="FILE_PATH", default="", description="Also save a PNG here (optional)", options=BLEND_RELATIVE_PATH)
-
-    @classmethod
-    def poll(cls, context):
-        return any(is_splat_object(o) for o in context.scene.objects)
-
-    def execute(self, context):
-        objects = context.selected_objects if self.selected_only else context.scene.objects
-        try:
-            with _Progress(context) as progress:
-                progress(0, 1)
-                image, messages = workflows.render_splats(
-                    objects, context.scene, antialias=self.antialias, background=tuple(self.background),
-                    filepath=bpy.path.abspath(self.filepath) if self.filepath else None,
-                )
-        except (ValueError, OSError, RuntimeError) as exc:
-            self.report({"ERROR"}, str(exc))
-            return {"CANCELLED"}
-        for area in context.screen.areas if context.screen else ():
-            if area.type == "IMAGE_EDITOR":
-                area.spaces.active.image = image
-        _report_all(self, messages)
-        return {"FINISHED"}
-
-
 
 
 def _select_only(context, obj):
@@ -568,6 +531,115 @@ class MLX3D_OT_train(_ModalWork, bpy.types.Operator):
             self._stop(context)
 
 
+class MLX3D_OT_render(bpy.types.Operator):
+    """Render the current frame from the scene camera: Blender's objects with the scene's engine, the splat objects with mlx3d, composited by depth, into the image 'MLX3D Render'"""
+
+    bl_idname = "mlx3d.render"
+    bl_label = "Render Image"
+    bl_options = {"REGISTER"}
+
+    antialias: BoolProperty(name="Antialias", default=False, description="Mip-Splatting opacity compensation for the 2D blur")
+    filepath: StringProperty(name="Save to", subtype="FILE_PATH", default="", description="Also save a PNG here (optional)", options=BLEND_RELATIVE_PATH)
+
+    def execute(self, context):
+        try:
+            with _Progress(context) as progress:
+                progress(0, 1)
+                image, messages = scene_render.render_image(
+                    context.scene, view_layer=context.view_layer, antialias=self.antialias,
+                    filepath=bpy.path.abspath(self.filepath) if self.filepath else None,
+                )
+        except (ValueError, OSError, RuntimeError) as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        _show_image(context, image)
+        _report_all(self, messages)
+        return {"FINISHED"}
+
+
+def _show_image(context, image):
+    """Show ``image`` in the open Image Editors."""
+    for area in context.screen.areas if context.screen else ():
+        if area.type == "IMAGE_EDITOR":
+            area.spaces.active.image = image
+
+
+class MLX3D_OT_render_animation(_ModalWork, bpy.types.Operator):
+    """Render the scene's frame range like Render Image, each frame written to the scene's output folder and format as soon as it is done (a movie is encoded at the end). Esc stops after the current frame and keeps the frames written"""
+
+    bl_idname = "mlx3d.render_animation"
+    bl_label = "Render Animation"
+    bl_options = {"REGISTER"}
+    PASS_EVENTS = "NONE"  # the scene changes frame while it renders
+
+    antialias: BoolProperty(name="Antialias", default=False, description="Mip-Splatting opacity compensation for the 2D blur")
+
+    def _new_session(self, context):
+        return scene_render.AnimationRender(context.scene, view_layer=context.view_layer, antialias=self.antialias)
+
+    def execute(self, context):
+        try:
+            session = self._new_session(context)
+        except (ValueError, OSError, RuntimeError) as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        try:
+            with _Progress(context) as progress:
+                while not session.done:
+                    session.step()
+                    progress(len(session.written), session.total)
+        except (ValueError, OSError, RuntimeError) as exc:
+            session.close()
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        _report_all(self, session.close() + [session.summary()])
+        return {"FINISHED"}
+
+    def invoke(self, context, event):
+        if context.window is None:  # no event loop (background): render everything now
+            return self.execute(context)
+        try:
+            self._session = self._new_session(context)
+        except (ValueError, OSError, RuntimeError) as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        return self._start_modal(context, self._session.total, self._text())
+
+    def _text(self):
+        s = self._session
+        return f"Rendering frame {s.frames[min(len(s.written), s.total - 1)]} ({len(s.written)} of {s.total} done; Esc stops after this frame)"
+
+    def _end(self, context, cancelled=False, error=None):
+        session = self._stop(context)
+        messages = []
+        try:
+            messages = session.close()
+        except (ValueError, OSError, RuntimeError) as exc:
+            error = error or str(exc)
+        if error is not None:
+            self.report({"ERROR"}, error)
+            return {"CANCELLED"}
+        if getattr(session, "last", None) is not None:
+            _show_image(context, scene_render.show_frame(session.last.rgba))
+        _report_all(self, messages + [session.summary() + (" (cancelled)" if cancelled else "")])
+        return {"CANCELLED"} if cancelled else {"FINISHED"}
+
+    def _tick(self, context):
+        try:
+            self._session.step()
+        except (ValueError, OSError, RuntimeError) as exc:
+            return self._end(context, error=str(exc))
+        context.window_manager.progress_update(len(self._session.written))
+        if self._session.done:
+            return self._end(context)
+        self._header(self._text())
+        return {"RUNNING_MODAL"}
+
+    def cancel(self, context):
+        if self._session is not None:
+            self._end(context, cancelled=True)
+
+
 class MLX3D_OT_extract_mesh(_ModalWork, bpy.types.Operator):
     """Extract a triangle mesh of the active splat object's surface (Poisson reconstruction from the splats as surfels), coloured by the splats, as a child of the splat object. Esc cancels and adds nothing"""
 
@@ -771,6 +843,7 @@ CLASSES = (
     MLX3D_OT_compact,
     MLX3D_OT_show_ellipsoids,
     MLX3D_OT_render,
+    MLX3D_OT_render_animation,
     MLX3D_OT_capture_dataset,
     MLX3D_OT_train,
     MLX3D_OT_extract_mesh,

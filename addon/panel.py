@@ -27,7 +27,6 @@ class MLX3D_PG_settings(bpy.types.PropertyGroup):
     mesh_max_points: IntProperty(name="Max points", default=200000, min=0, description="Surface samples used at most (0: all)")
     mesh_trim: FloatProperty(name="Trim", default=workflows.DEFAULT_TRIM, min=0.0, description="Remove surface farther than this many voxels from any splat (0: off)")
     render_antialias: BoolProperty(name="Antialias", default=False)
-    render_background: bpy.props.FloatVectorProperty(name="Background", subtype="COLOR", size=3, min=0.0, max=1.0, default=(0.0, 0.0, 0.0))
     render_path: bpy.props.StringProperty(name="Save to", subtype="FILE_PATH", default="", options=operators.BLEND_RELATIVE_PATH)
     capture_dir: bpy.props.StringProperty(name="Folder", subtype="DIR_PATH", default="", description="Output folder of the dataset", options=operators.BLEND_RELATIVE_PATH)
     capture_views: IntProperty(name="Views", default=72, min=1, description="Orbit views, spread over the elevation rings")
@@ -139,8 +138,10 @@ class VIEW3D_PT_mlx3d_splats(_SplatsTab, bpy.types.Panel):
                  {"max_gaussians": "compact_max", "min_opacity": "compact_min_opacity", "sh_degree": "compact_sh"})
         _section(layout, "Surface mesh", settings, operators.MLX3D_OT_extract_mesh, "OUTLINER_OB_MESH",
                  {"resolution": "mesh_resolution", "min_opacity": "mesh_min_opacity", "max_points": "mesh_max_points", "trim": "mesh_trim"})
-        _section(layout, "Render (scene camera)", settings, operators.MLX3D_OT_render, "RENDER_STILL",
-                 {"antialias": "render_antialias", "background": "render_background", "filepath": "render_path"})
+        col = _section(layout, "Render (scene camera)", settings, operators.MLX3D_OT_render, "RENDER_STILL",
+                       {"antialias": "render_antialias", "filepath": "render_path"})
+        op = col.operator(operators.MLX3D_OT_render_animation.bl_idname, icon="RENDER_ANIMATION")
+        op.antialias = settings.render_antialias
 
         col = layout.column(align=True)
         col.label(text="Capture dataset")

@@ -229,67 +229,6 @@ def splat_info(obj) -> dict:
     }
 
 
-RENDER_IMAGE = "MLX3D Render"
-
-
-def render_splats(objects, scene, *, camera_object=None, antialias=False, background=(0.0, 0.0, 0.0), filepath=None, backend="auto"):
-    """Render splat objects (world transforms baked) from the scene camera with mlx3d.
-
-    The result goes into the Blender image ``RENDER_IMAGE`` (sRGB, the size of
-    the scene's render resolution) and, when ``filepath`` is given, a PNG
-    written atomically. Returns (image, messages).
-    """
-    objects = splat_objects(objects)
-    if not objects:
-        raise SplatObjectError("no splat objects to render")
-    camera_object = camera_object or scene.camera
-    if camera_object is None or camera_object.type != "CAMERA":
-        raise SplatObjectError("the scene has no active camera to render from")
-    cam = camera_from_blender(camera_object, scene)
-    bpy.context.view_layer.update()
-    messages: list = []
-    parts = []
-    for obj in objects:
-        arrays, warnings_ = baked_splats(obj)
-        parts.append(arrays)
-        messages += warnings_
-    with _warnings_into(messages):
-        arrays = parts[0] if len(parts) == 1 else merge_splats(parts)
-    out = GaussianModel.from_arrays(arrays).render(cam, background=tuple(background), antialias=antialias, backend=backend)
-    rgb = np.clip(np.array(out["image"], dtype=np.float32), 0.0, 1.0)
-    rgba = np.concatenate([rgb, np.ones(rgb.shape[:2] + (1,), np.float32)], axis=-1)[::-1]  # Blender rows go bottom-up
-    image = bpy.data.images.get(RENDER_IMAGE)
-    if image is None or tuple(image.size) != (cam.width, cam.height):
-        if image is not None:
-            bpy.data.images.remove(image)
-        image = bpy.data.images.new(RENDER_IMAGE, cam.width, cam.height, alpha=True)
-    image.pixels.foreach_set(np.ascontiguousarray(rgba).ravel())
-    image.update()
-    names = ", ".join(o.name for o in objects)
-    messages.insert(0, f"rendered {arrays.count:,} splats from {names} through '{camera_object.name}' at {cam.width}x{cam.height} ({', '.join(out['stages'])})")
-    if filepath:
-        _save_png(image, os.fspath(filepath))
-        messages.append(f"saved {filepath}")
-    return image, messages
-
-
-def _save_png(image, path: str) -> None:
-    """Save a Blender image as PNG via a temporary file and rename (no partial file on failure)."""
-    folder = os.path.dirname(os.path.abspath(path))
-    if not os.path.isdir(folder):
-        raise SplatObjectError(f"folder {folder} does not exist")
-    tmp = os.path.join(folder, f".{os.path.basename(path)}.{os.getpid()}.tmp.png")
-    try:
-        image.filepath_raw = tmp
-        image.file_format = "PNG"
-        image.save()
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        image.filepath_raw = path
-
-
 # ------------------------------------------------------------------ surface mesh
 MESH_MATERIAL = "MLX3D Mesh"
 MESH_COLOR_ATTRIBUTE = "Color"

@@ -519,7 +519,9 @@ def test_render_operator_matches_mlx3d_and_saves_png(extension, clean_scene, tmp
     scene.render.resolution_x, scene.render.resolution_y, scene.render.resolution_percentage = 64, 48, 100
     cam_obj = add_camera()
     out_png = tmp_path / "render.png"
-    assert bpy.ops.mlx3d.render(background=(0.1, 0.2, 0.3), filepath=str(out_png)) == {"FINISHED"}
+    scene.view_settings.view_transform = "Standard"
+    assert scene.world is None  # a black world behind the splats, no Blender render (no other object)
+    assert bpy.ops.mlx3d.render(filepath=str(out_png)) == {"FINISHED"}
     image = bpy.data.images["MLX3D Render"]
     assert tuple(image.size) == (64, 48)
     pixels = np.empty(64 * 48 * 4, np.float32)
@@ -528,9 +530,9 @@ def test_render_operator_matches_mlx3d_and_saves_png(extension, clean_scene, tmp
     bpy.context.view_layer.update()
     cam = extension.addon.camera.camera_from_blender(cam_obj, scene)
     model = GaussianModel.from_arrays(transform_splats(read_splat_ply(tmp_path / "in.ply"), np.array(obj.matrix_world)))
-    want = np.clip(np.array(model.render(cam, background=(0.1, 0.2, 0.3))["image"]), 0, 1)
+    want = np.clip(np.array(model.render(cam, background=(0.0, 0.0, 0.0))["image"]), 0, 1)
     np.testing.assert_allclose(got, want, atol=1.0 / 255 + 1e-6)
-    assert np.abs(want - [0.1, 0.2, 0.3]).max() > 0.1  # the splats are in view
+    assert np.abs(want).max() > 0.1  # the splats are in view
     assert out_png.exists() and not [p for p in os.listdir(tmp_path) if p.endswith(".tmp.png")]
     loaded = bpy.data.images.load(str(out_png))
     assert tuple(loaded.size) == (64, 48)
@@ -553,7 +555,7 @@ def test_headless_render(extension, clean_scene, tmp_path):
     import importlib
 
     headless = importlib.import_module(extension.__name__ + ".addon.headless")
-    code = headless.main(["render", "--blend", str(tmp_path / "scene.blend"), "--out", str(tmp_path / "out.png"), "--background", "1", "1", "1"])
+    code = headless.main(["render", "--blend", str(tmp_path / "scene.blend"), "--out", str(tmp_path / "out.png")])
     assert code == 0 and (tmp_path / "out.png").exists()
     assert tuple(bpy.data.images.load(str(tmp_path / "out.png")).size) == (32, 24)
 
@@ -565,12 +567,12 @@ def test_panel_compact_and_render_sections_pass_their_settings(extension, clean_
 
     settings = clean_scene.mlx3d_splats
     settings.compact_max, settings.compact_min_opacity, settings.compact_sh = 1234, 0.25, "1"
-    settings.render_antialias, settings.render_background, settings.render_path = True, (0.1, 0.2, 0.3), "//out.png"
+    settings.render_antialias, settings.render_path = True, "//out.png"
     log = []
     extension.addon.panel.VIEW3D_PT_mlx3d_splats.draw(SimpleNamespace(layout=RecordingLayout(log)), SimpleNamespace(scene=clean_scene, active_object=None))
     ops = {entry[1]: entry[2] for entry in log if entry[0] == "operator"}
-    compact, render = ops["mlx3d.compact"], ops["mlx3d.render"]
+    compact, render, animation = ops["mlx3d.compact"], ops["mlx3d.render"], ops["mlx3d.render_animation"]
     assert (compact.max_gaussians, compact.min_opacity, compact.sh_degree) == (1234, pytest.approx(0.25), "1")
-    assert render.antialias is True and tuple(render.background) == pytest.approx((0.1, 0.2, 0.3)) and render.filepath == "//out.png"
+    assert render.antialias is True and render.filepath == "//out.png" and animation.antialias is True
     labels = [entry[1] for entry in log if entry[0] == "label"]
     assert "Compact" in labels and "Render (scene camera)" in labels
