@@ -11,8 +11,8 @@ One frame (``render_frame``), in the scene's current state:
 2. Blender's layer: the scene rendered by its own engine and settings (Cycles,
    EEVEE, samples, lights, materials) with the splat objects hidden, the film
    transparent (so edges carry coverage alpha), and the Depth pass (camera z,
-   the splats' depth too) and, behind an opaque film, the Environment pass (the
-   world); read from a multilayer OpenEXR. The compositor is not applied.
+   the splats' depth too) and, behind a textured world, the Environment pass
+   (the world); read from a multilayer OpenEXR. The compositor is not applied.
 3. Display space: 3DGS colours are display-referred sRGB (what the photos
    showed), so the frame is composited in display space. Blender's layer
    (unpremultiplied) and the world go through the scene's view transform:
@@ -125,17 +125,6 @@ class FramePlan:
     def blender_render(self) -> bool:
         return bool(self.blender_objects) or self.world == "rendered"
 
-    @property
-    def stages(self) -> tuple:
-        out = []
-        if self.blender_render:
-            out += [f"blender_render_{self.engine.lower()}", "view_transform"]
-        if self.splat_objects:
-            out.append("splats_over_blender" if self.blender_objects else "splats")
-        if self.world != "transparent":
-            out.append(f"world_{self.world}")
-        return tuple(out)
-
 
 def plan_frame(scene, view_layer=None) -> FramePlan:
     """Decide the stages of a frame of ``scene`` (see the module docstring)."""
@@ -221,7 +210,7 @@ def _image_format(settings: TemporarySettings, scene, file_format: str, **values
 class BlenderLayer:
     """Blender's render of a frame: premultiplied scene-linear ``color`` (H,W,3), coverage ``alpha``
     (H,W), camera-z ``depth`` (H,W) (+inf where nothing is drawn), and the scene-linear ``world``
-    (H,W,3) behind an opaque film (None for a transparent film); rows top first."""
+    (H,W,3) when it was asked for (a textured world behind an opaque film), else None; rows top first."""
 
     color: np.ndarray
     alpha: np.ndarray
@@ -237,15 +226,15 @@ def _channels(channels: dict, layer: str, name: str, components: str) -> np.ndar
     return np.stack([channels[k] for k in keys], axis=-1)
 
 
-def render_blender_layer(scene, view_layer, hide) -> BlenderLayer:
-    """Render ``scene`` with its own engine, ``hide`` (objects) hidden, film transparent, and read the passes."""
-    opaque = not scene.render.film_transparent
+def render_blender_layer(scene, view_layer, hide, world: bool) -> BlenderLayer:
+    """Render ``scene`` with its own engine, ``hide`` (objects) hidden, film transparent, and read the
+    passes (the Environment pass only with ``world``)."""
     with tempfile.TemporaryDirectory() as folder, TemporarySettings() as settings:
         for obj in hide:
             settings.set(obj, "hide_render", True)
         settings.set_all(scene.render, {"film_transparent": True, "use_compositing": False, "use_sequencer": False})
         settings.set(view_layer, "use_pass_z", True)
-        if opaque:
+        if world:
             settings.set(view_layer, "use_pass_environment", True)
         path = os.path.join(folder, "layer.exr")
         if bpy.ops.render.render(scene=scene.name, layer=view_layer.name) != {"FINISHED"}:
@@ -257,12 +246,12 @@ def render_blender_layer(scene, view_layer, hide) -> BlenderLayer:
     depth = _channels(channels, view_layer.name, "Depth", "Z")[..., 0]
     alpha = np.clip(rgba[..., 3], 0.0, 1.0)
     drawn = (alpha > 0.0) & np.isfinite(depth) & (depth < EMPTY_DEPTH)
-    world = None
-    if opaque:  # the Environment pass is "Env" in Blender 4.x files, "Environment" in 5.x
+    env = None
+    if world:  # the Environment pass is "Env" in Blender 4.x files, "Environment" in 5.x
         env = "Environment" if f"{view_layer.name}.Environment.R" in channels else "Env"
-        world = np.maximum(_channels(channels, view_layer.name, env, "RGB"), 0.0)
+        env = np.maximum(_channels(channels, view_layer.name, env, "RGB"), 0.0)
     return BlenderLayer(np.maximum(rgba[..., :3], 0.0), np.where(drawn, alpha, 0.0).astype(np.float32),
-                        np.where(drawn, depth, np.inf).astype(np.float32), world)
+                        np.where(drawn, depth, np.inf).astype(np.float32), env)
 
 
 # ------------------------------------------------------------------ splats
@@ -307,7 +296,7 @@ def render_frame(scene, *, view_layer=None, antialias: bool = False, source: Spl
     h, w = plan.height, plan.width
     splat_objects = [scene.objects[name] for name in plan.splat_objects]
     t0 = time.perf_counter()
-    layer = render_blender_layer(scene, view_layer, splat_objects) if plan.blender_render else None
+    layer = render_blender_layer(scene, view_layer, splat_objects, plan.world == "rendered") if plan.blender_render else None
     seconds["blender"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     if layer is not None:
@@ -320,10 +309,9 @@ def render_frame(scene, *, view_layer=None, antialias: bool = False, source: Spl
         stages.append(f"view_transform_{(exact_view(scene) or 'blender').lower()}")
         alpha = layer.alpha
     else:
-        color, alpha = np.zeros((h, w, 3), np.float32), np.zeros((h, w), np.float32)
-        world = None
-        if plan.world == "flat":
-            world = to_display(flat_world_colour(scene), scene)
+        color, alpha, world = np.zeros((h, w, 3), np.float32), np.zeros((h, w), np.float32), None
+    if plan.world == "flat":
+        world = to_display(flat_world_colour(scene), scene)
     seconds["composite"] += time.perf_counter() - t0
     if splat_objects:
         t0 = time.perf_counter()
