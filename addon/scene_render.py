@@ -301,11 +301,13 @@ def render_frame(scene, *, view_layer=None, antialias: bool = False, source: Spl
     t0 = time.perf_counter()
     if layer is not None:
         stages.append(f"blender_render_{plan.engine.lower()}")
-        straight = np.where(layer.alpha[..., None] > 0, layer.color / np.maximum(layer.alpha, 1e-12)[..., None], 0.0)
-        shown = [straight] + ([layer.world] if layer.world is not None else [])
-        shown = to_display(np.stack(shown), scene)
-        color = shown[0] * layer.alpha[..., None]
-        world = shown[1] if layer.world is not None else None
+        drawn = layer.alpha > 0  # only these pixels (and a textured world) go through the view transform
+        coverage = layer.alpha[drawn][:, None]
+        parts = [layer.color[drawn] / coverage] + ([layer.world.reshape(-1, 3)] if layer.world is not None else [])
+        shown = to_display(np.concatenate(parts), scene)
+        color = np.zeros((h, w, 3), np.float32)
+        color[drawn] = shown[: len(coverage)] * coverage
+        world = shown[len(coverage):].reshape(h, w, 3) if layer.world is not None else None
         stages.append(f"view_transform_{(exact_view(scene) or 'blender').lower()}")
         alpha = layer.alpha
     else:

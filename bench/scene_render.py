@@ -10,7 +10,7 @@ so no Blender render and no depth test). Target: the splat pass with the depth
 test costs at most 10% more than the splat-only one. Frames alternate between
 the two, ``--repeats`` each; medians.
 
-    python bench/scene_render.py [--splats 300000] [--size 1920 1080] [--samples 8] [--repeats 3] [--markdown PATH] [--png PATH]
+    python bench/scene_render.py [--splats 300000] [--size 1920 1080] [--samples 8] [--repeats 5] [--markdown PATH] [--png PATH]
 
 Runs the add-on from this checkout (not an installed extension).
 """
@@ -53,7 +53,7 @@ def main() -> None:
     parser.add_argument("--splats", type=int, default=300_000)
     parser.add_argument("--size", type=int, nargs=2, default=(1920, 1080), metavar=("W", "H"))
     parser.add_argument("--samples", type=int, default=8, help="Cycles samples (default 8)")
-    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--markdown", metavar="PATH")
     parser.add_argument("--png", metavar="PATH", help="also save the composited frame")
     args = parser.parse_args()
