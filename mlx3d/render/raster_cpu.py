@@ -190,15 +190,17 @@ def rasterize_cpu(
         contributing entry in the pixel's tile range, 0 if none), lazily
         evaluated mx.arrays. Float inputs are cast to float32, ids to int32.
     """
-    (means2d, conics, features, opacities, tile_offsets, flatten_ids, width, height, tile_size) = prepare_inputs(
-        means2d, conics, features, opacities, tile_offsets, flatten_ids, width, height, tile_size
-    )
+    return _forward("rasterize_forward", (means2d, conics, features, opacities, tile_offsets, flatten_ids, width, height, tile_size), (), num_threads)
+
+
+def _forward(op: str, inputs: tuple, surface: tuple, num_threads):
+    """Run the native forward ``op`` on the checked ``inputs`` (rasterize_cpu's first nine arguments)
+    with the ``surface`` arrays after the ids; returns (accum, alpha, last)."""
+    *arrays, width, height, tile_size = prepare_inputs(*inputs)
     threads = get_num_threads() if num_threads is None else _positive_int(num_threads, "num_threads", minimum=0)
     from mlx3d import native
 
-    accum, alpha, last, _final_t = native.core().rasterize_forward(
-        means2d, conics, features, opacities, tile_offsets, flatten_ids, width, height, tile_size, threads
-    )
+    accum, alpha, last, _final_t = getattr(native.core(), op)(*arrays, *surface, width, height, tile_size, threads)
     return accum, alpha, last
 
 
@@ -230,18 +232,10 @@ def rasterize_cpu_surface(
     Returns (accum (H, W, C), alpha (H, W) = 1 - final T including the
     surface, last (H, W) int32) as ``rasterize_cpu``. Differentiating raises.
     """
-    (means2d, conics, features, opacities, tile_offsets, flatten_ids, width, height, tile_size) = prepare_inputs(
-        means2d, conics, features, opacities, tile_offsets, flatten_ids, width, height, tile_size
-    )
-    surface = [_float32(a, name) for a, name in zip((depths, surface_color, surface_alpha, surface_depth), _SURFACE_INPUTS)]
-    threads = get_num_threads() if num_threads is None else _positive_int(num_threads, "num_threads", minimum=0)
-    from mlx3d import native
-
-    # shapes are checked by the op (ValueError naming the input)
-    accum, alpha, last, _final_t = native.core().rasterize_forward_surface(
-        means2d, conics, features, opacities, tile_offsets, flatten_ids, *surface, width, height, tile_size, threads
-    )
-    return accum, alpha, last
+    surface = tuple(_float32(a, name) for a, name in zip((depths, surface_color, surface_alpha, surface_depth), _SURFACE_INPUTS))
+    # their shapes are checked by the op (ValueError naming the input)
+    inputs = (means2d, conics, features, opacities, tile_offsets, flatten_ids, width, height, tile_size)
+    return _forward("rasterize_forward_surface", inputs, surface, num_threads)
 
 
 _SURFACE_INPUTS = ("depths", "surface_color", "surface_alpha", "surface_depth")

@@ -362,3 +362,18 @@ def test_movie_output_goes_through_blenders_movie_writer(extension, clean_scene,
     assert messages and files[0] in messages[0]
     clip = bpy.data.movieclips.load(str(tmp_path / files[0]))
     assert clip.frame_duration == 3 and tuple(clip.size) == (W, H)
+
+
+def test_operators_render_image_and_animation(extension, clean_scene, sr, tmp_path):
+    scene, _ = _animated_scene(extension)
+    scene.frame_end = 2
+    scene.render.image_settings.file_format = "PNG"
+    scene.render.filepath = str(tmp_path / "ops") + os.sep
+    assert bpy.ops.mlx3d.render(filepath=str(tmp_path / "still.png")) == {"FINISHED"}
+    image = bpy.data.images[sr.RENDER_IMAGE]
+    assert tuple(image.size) == (W, H) and (tmp_path / "still.png").exists()
+    assert bpy.ops.mlx3d.render_animation() == {"FINISHED"}
+    assert sorted(os.listdir(tmp_path / "ops")) == ["0001.png", "0002.png"]
+    scene.camera = None
+    with pytest.raises(RuntimeError, match="no active camera"):
+        bpy.ops.mlx3d.render_animation()
