@@ -7,24 +7,20 @@ Builds the synthetic scene of ``mlx3d.report.scene``: an initial model of
 ``--gaussians`` Gaussians (``GaussianModel.from_points`` on noisy samples of
 the ground truth, SH degree 3), ``--size``² cameras on its rings and the
 ground truth's renders as targets, and times ``GaussianTrainer.step``
-(vanilla) without the grid, with ``bilateral_grid=True`` as the trainer runs
-it (``--images`` grids, the step's image index cycling over them; the TV of
-all grids in the loss and Adam over the whole stack), and with the per-image
-calls that ``GridAdam``'s documentation describes (the stepped image's grid
-alone: its slice, its TV, ``GridAdam``), run by the same, unchanged
-``GaussianTrainer.step`` through an adapter that presents them under the
-attribute names the step uses. The variants alternate step by step (in
-rotating order), so machine load hits them alike; the table gives the median
-ms per step of each and the grid's share of the step with the grid
+(vanilla) without the grid and with ``bilateral_grid=True`` (``--images``
+grids, the step's image index cycling over them: the stepped image's grid is
+sliced, its TV is in the loss and ``GridAdam`` updates it alone). The two
+alternate step by step, so machine load hits them alike; the table gives the
+median ms per step of each and the grid's share of the step with the grid
 ((grid - plain) / grid).
 
 A breakdown of the grid's own work follows, timed the same interleaved way on
-the rendered image: slicing forward, slicing forward + backward (as in the
-step: one image's grid taken from the stacked parameters, gradient to grids
-and image), the TV loss with its gradient, the grids' Adam update, the same
-with the per-image calls, and, for comparison, the MLX-graph formulations
-that ``apply_grid_reference`` and ``total_variation_reference`` keep (MLX's
-own gradients: a scatter-add per gather).
+the rendered image: slicing forward, slicing forward + backward of one
+image's grid (gradient to the grid and the image), its TV loss with its
+gradient, ``GridAdam``'s catch-up and update, and, for comparison, the
+MLX-graph formulations that ``apply_grid_reference`` and
+``total_variation_reference`` keep (MLX's own gradients: a scatter-add per
+gather).
 
 The render threads default to 1 (``MLX3D_NUM_THREADS``), and so do numpy's
 BLAS threads (``OPENBLAS_NUM_THREADS``, ``OMP_NUM_THREADS``, which the grid's
@@ -44,7 +40,7 @@ import time
 from common import LoadSampler, emit, machine_line, peak_rss_mb  # bench/ is on sys.path when run as a script
 
 BACKGROUND = (1.0, 1.0, 1.0)  # the scene's targets are composited on white
-VARIANTS = ("plain", "grid", "grid, per image")
+VARIANTS = ("plain", "grid")
 
 
 def _median_ms(xs) -> float:
@@ -64,40 +60,6 @@ def _scene(n: int, size: int, views: int):
     cams = scene.cameras(views, size)
     targets = [mx.array(scene.render_view(truth, c)) for c in cams]
     return (lambda: GaussianModel.from_points(points, colours, sh_degree=3)), cams, targets
-
-
-class _PerImageCalls:
-    """The grid calls of the per-image scheme behind the names ``GaussianTrainer.step`` uses.
-
-    ``step`` reads ``bilateral.params`` (the grid to differentiate), calls
-    ``bilateral.apply(image, index, grid, compiled=...)`` and
-    ``bilateral.tv_loss(grid)``, then ``grid_optimizer.update({"grid": grid},
-    {"grid": grad})["grid"]`` and assigns the result to ``bilateral.params``.
-    Here ``params`` is ``GridAdam.current`` for the step's image (set in
-    ``index`` before the step), ``update`` is ``GridAdam.update`` and the
-    assignment is a no-op (``GridAdam`` already wrote the grid).
-    """
-
-    def __init__(self, bilateral, optimizer):
-        self.bilateral, self.optimizer, self.index = bilateral, optimizer, 0
-
-    @property
-    def params(self):
-        return self.optimizer.current(self.bilateral, self.index)
-
-    @params.setter
-    def params(self, _value):
-        pass
-
-    def apply(self, image, index, grid, compiled=True):
-        return self.bilateral.apply(image, index, grid)
-
-    def tv_loss(self, grid):
-        return self.bilateral.tv_loss(grid)
-
-    def update(self, _params, grads):
-        self.optimizer.update(self.bilateral, self.index, grads["grid"])
-        return {"grid": None}
 
 
 def _interleaved(fns: dict, rounds: int, warmup: int, before=None) -> dict:
@@ -128,8 +90,7 @@ def run(args) -> dict:
     from mlx3d.render import render_gaussians
     from mlx3d.render.raster_cpu import get_num_threads
     from mlx3d.training import GaussianTrainer, TrainerConfig
-    from mlx3d.training.adam import Adam
-    from mlx3d.training.bilateral_grid import GridAdam, apply_grid_reference, total_variation_reference
+    from mlx3d.training.bilateral_grid import BilateralGrid, GridAdam, apply_grid_reference, total_variation_reference
 
     native.core()  # import (and, for editable installs, rebuild) outside the timing
     make_model, cams, targets = _scene(args.gaussians, args.size, min(args.images, 8))
@@ -138,9 +99,6 @@ def run(args) -> dict:
         config = TrainerConfig(steps=30_000, bilateral_grid=variant != "plain", background=BACKGROUND, densify_from=10**9,
                                sh_increase_every=0)
         trainers[variant] = GaussianTrainer(make_model(), config, num_images=args.images)
-    per_image = trainers["grid, per image"]
-    calls = _PerImageCalls(per_image.bilateral, GridAdam(per_image.config.bilateral_grid_lr))
-    per_image.bilateral = per_image.grid_optimizer = calls
 
     # Whole steps, the variants alternating step by step.
     def step(variant):
@@ -150,10 +108,7 @@ def run(args) -> dict:
 
         return go
 
-    def set_index(name, i):
-        calls.index = i % args.images
-
-    times = _interleaved({v: step(v) for v in VARIANTS}, args.repeat, args.warmup, before=set_index)
+    times = _interleaved({v: step(v) for v in VARIANTS}, args.repeat, args.warmup)
 
     # The grid's own work, on the rendered image, with the trainer's grid and optimizer.
     trainer = trainers["grid"]
@@ -173,37 +128,20 @@ def run(args) -> dict:
     def slice_fwd(i):
         return [bg.apply(image, i, compiled=False)]
 
-    def slice_fwd_bwd(i):
-        def f(grid, img):
-            return mx.sum(bg.apply(img, i, grid, compiled=False) * wts)
-
-        return list(mx.value_and_grad(f, argnums=(0, 1))(bg.params, image)[1])
-
     def slice_fwd_bwd_graph(i):
         def f(grid, img):
-            return mx.sum(apply_grid_reference(grid[i], img) * wts)
+            return mx.sum(apply_grid_reference(grid, img) * wts)
 
-        return list(mx.value_and_grad(f, argnums=(0, 1))(bg.params, image)[1])
-
-    def tv(i):
-        return list(mx.value_and_grad(lambda g: lam * bg.tv_loss(g))(bg.params))
+        return list(mx.value_and_grad(f, argnums=(0, 1))(bg.params[i % bg.num_images], image)[1])
 
     def tv_graph(i):
-        return list(mx.value_and_grad(lambda g: lam * total_variation_reference(g))(bg.params))
+        return list(mx.value_and_grad(lambda g: lam * total_variation_reference(g))(bg.params[i % bg.num_images]))
 
-    grad_like = mx.array(rng.standard_normal(bg.params.shape).astype(np.float32) * 1e-3)
-    adam = Adam({"grid": trainer.config.bilateral_grid_lr})
-
-    def adam_step(i):
-        return [adam.update({"grid": bg.params}, {"grid": grad_like})["grid"], *adam.m.values(), *adam.v.values()]
-
-    # Per image: a copy of the grids for GridAdam to write into.
-    from mlx3d.training.bilateral_grid import BilateralGrid
-
+    # A copy of the grids for GridAdam to write into.
     own = BilateralGrid(bg.num_images, bg.grid_shape)
     own.params = mx.array(np.array(bg.params))
     grid_adam = GridAdam(trainer.config.bilateral_grid_lr)
-    one_grad = grad_like[0]
+    one_grad = mx.array(rng.standard_normal(bg.params.shape[1:]).astype(np.float32) * 1e-3)
 
     def slice_fwd_bwd_one(i):
         def f(grid, img):
@@ -221,14 +159,11 @@ def run(args) -> dict:
 
     parts = {
         "slice forward": slice_fwd,
-        "slice forward+backward": slice_fwd_bwd,
-        "TV loss + gradient, all grids": tv,
-        "Adam update, all grids": adam_step,
         "slice forward+backward, this image's grid": slice_fwd_bwd_one,
         "TV loss + gradient, this image's grid": tv_one,
         "GridAdam current + update, this image's grid": grid_adam_step,
         "slice forward+backward, MLX graph (reference)": slice_fwd_bwd_graph,
-        "TV loss + gradient, all grids, MLX graph (reference)": tv_graph,
+        "TV loss + gradient, MLX graph (reference)": tv_graph,
     }
     part_times = _interleaved(parts, args.repeat, args.warmup)
 
@@ -278,10 +213,8 @@ def main() -> None:
         "| step | ms/step | steps/s | grid's share of the step |",
         "|---|---:|---:|---:|",
         f"| without grid | {steps['plain']:.1f} | {1000 / steps['plain']:.2f} | |",
-        f"| with grid (trainer as is: TV of all grids, Adam over all grids) | {steps['grid']:.1f} | {1000 / steps['grid']:.2f} "
+        f"| with grid (this image's grid sliced, its TV, GridAdam) | {steps['grid']:.1f} | {1000 / steps['grid']:.2f} "
         f"| {100 * share['grid']:.1f}% |",
-        f"| with grid, per image (this image's grid, its TV, GridAdam) | {steps['grid, per image']:.1f} "
-        f"| {1000 / steps['grid, per image']:.2f} | {100 * share['grid, per image']:.1f}% |",
         "",
         "| grid part (alone, interleaved) | ms |",
         "|---|---:|",
