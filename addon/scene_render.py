@@ -232,7 +232,9 @@ def render_blender_layer(scene, view_layer, hide, world: bool) -> BlenderLayer:
     with tempfile.TemporaryDirectory() as folder, TemporarySettings() as settings:
         for obj in hide:
             settings.set(obj, "hide_render", True)
-        settings.set_all(scene.render, {"film_transparent": True, "use_compositing": False, "use_sequencer": False})
+        # the whole frame, one view: a render border or stereo views would not line up with the splats' frame
+        settings.set_all(scene.render, {"film_transparent": True, "use_compositing": False, "use_sequencer": False, "use_border": False,
+                                        "use_multiview": False})
         settings.set(view_layer, "use_pass_z", True)
         if world:
             settings.set(view_layer, "use_pass_environment", True)

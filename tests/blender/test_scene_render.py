@@ -304,10 +304,12 @@ def test_render_leaves_the_scene_as_it_was(extension, clean_scene, sr, tmp_path)
                 image.file_format, image.color_depth, image.color_mode, image.color_management, scene.render.use_compositing,
                 scene.render.dither_intensity, scene.view_settings.view_transform, getattr(image, "media_type", None))
 
-    before = state()
-    sr.render_frame(scene)
+    scene.render.use_border, scene.render.use_crop_to_border = True, True  # a border crop is not used for the layer
+    scene.render.border_min_x = 0.5
+    before = state() + (scene.render.use_border,)
+    assert sr.render_frame(scene).rgba.shape == (H, W, 4)
     sr.save_frame(scene, np.ones((H, W, 4), np.float32), str(tmp_path / "x.png"))
-    assert state() == before
+    assert state() + (scene.render.use_border,) == before
 
 
 def test_headless_render_frames_exit_codes_and_ctrl_c(extension, clean_scene, sr, tmp_path, monkeypatch, capsys):
