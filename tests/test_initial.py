@@ -114,10 +114,11 @@ def test_mcmc_on_opaque_photos_seeds_a_far_backdrop_coloured_by_the_photos(tmp_p
     np.testing.assert_allclose(np.asarray(model.colors)[400:], np.tile(SKY, (500, 1)), atol=1.5 / 255)  # the sky's colour
     # the methods' starting opacity and scale: MCMC 0.5 and 0.1 x the 3-NN distance, vanilla 0.1 and 1
     vanilla = initial_state(dataset, TrainerConfig(method="vanilla"))
-    assert len(vanilla.model) == 400  # no backdrop by default for vanilla
+    assert len(vanilla.model) == 400 + 1000  # vanilla seeds its backdrop by default too (at least 1,000 points)
+    assert len(initial_state(dataset, TrainerConfig(method="2dgs")).model) == 400  # surfels for meshes: none
     np.testing.assert_allclose(np.asarray(model.opacities)[:400], 0.5, rtol=1e-5)
     np.testing.assert_allclose(np.asarray(vanilla.model.opacities), 0.1, rtol=1e-5)
-    np.testing.assert_allclose(np.asarray(model.params["scales"])[:400], np.asarray(vanilla.model.params["scales"]) + math.log(0.1), atol=1e-5)
+    np.testing.assert_allclose(np.asarray(model.params["scales"])[:400], np.asarray(vanilla.model.params["scales"])[:400] + math.log(0.1), atol=1e-5)
 
 
 def test_no_backdrop_when_the_photos_have_alpha_or_when_turned_off(tmp_path):
@@ -180,6 +181,8 @@ def test_mlx3d_train_prints_its_defaults_and_trains_a_scene_without_points(tmp_p
     assert main(["train", str(folder), "--out", str(out), "--steps", "2", "--random-points", "300"]) == 0
     printed = capsys.readouterr().out
     assert "initial opacity 0.1, scale 1" in printed and "densification: every 100 steps from step 500 to 15000" in printed
-    assert "training background: black (background)" in printed  # vanilla seeds no backdrop: nothing to cover the frame with
+    assert "training background: random" in printed  # vanilla seeds its backdrop too
+    assert main(["train", str(folder), "--out", str(out), "--method", "2dgs", "--steps", "1", "--random-points", "300"]) == 0
+    assert "training background: black (background)" in capsys.readouterr().out  # 2dgs seeds none: nothing to cover the frame with
     assert main(["train", str(folder), "--out", str(out), "--steps", "1", "--random-points", "300", "--opaque-background", "same", "--background", "white"]) == 0
     assert "training background: white (background)" in capsys.readouterr().out

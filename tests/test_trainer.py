@@ -150,6 +150,18 @@ def test_screen_size_pruning_and_growth_cap():
     assert counts["cloned"] + counts["split"] == 1
 
 
+def test_the_backdrop_is_exempt_from_the_size_prunes():
+    params, grads = crafted_params()  # means (0,1,2), (3,4,5), ... (15,16,17)
+    radii = np.array([1, 1, 1, 30, 1, 30])
+    common = dict(scene_extent=1.0, max_screen_size=20.0, max_radii=radii, grad_threshold=1.0)  # no densification
+    _, counts = densify_and_prune(params, grads, np.ones(6), **common)
+    assert counts["pruned"] == 4  # rows 2, 3, 5 too large (world or screen), row 4 transparent
+    # Beyond 20 units from the origin (rows 4 and 5, at distances 22.6 and 27.8) sizes do not prune.
+    out, counts = densify_and_prune(params, grads, np.ones(6), scene_centre=np.zeros(3), backdrop_radius=20.0, **common)
+    assert counts["pruned"] == 3  # rows 2 and 3 (near, too large) and row 4 (transparent: far does not save it)
+    np.testing.assert_array_equal(np.array(out["means"]), np.array(params["means"])[[0, 1, 5]])
+
+
 def test_reset_opacities_caps_and_clears_moments():
     params, _ = crafted_params()
     opt = Adam({k: 1.0 for k in params})
@@ -211,8 +223,10 @@ def test_checkpoint_resume_is_exact(tmp_path):
     a = GaussianTrainer(model, config, scene_extent=3.0)
     for i in range(6):
         a.step(cams[i % 6], targets[i % 6])
+    a.scene_centre = np.array([0.5, -1.0, 2.0])
     a.save_checkpoint(tmp_path / "ck.npz")
     b = GaussianTrainer.load_checkpoint(tmp_path / "ck.npz", config)  # random state included
+    np.testing.assert_array_equal(b.scene_centre, a.scene_centre)
     for i in range(6, 12):
         a.step(cams[i % 6], targets[i % 6])
         b.step(cams[i % 6], targets[i % 6])
@@ -481,7 +495,8 @@ def test_random_background_by_default_where_a_backdrop_was_seeded(tmp_path):
 
     _, cams, targets = small_problem()
     dataset = _folder_dataset(tmp_path, cams, targets)  # opaque photos
-    for method, backdrop, expected in (("mcmc", None, "random"), ("vanilla", None, "white"), ("vanilla", 200, "random"), ("mcmc", 0, "white")):
+    for method, backdrop, expected in (("mcmc", None, "random"), ("vanilla", None, "random"), ("2dgs", None, "white"), ("2dgs", 200, "random"),
+                                       ("mcmc", 0, "white")):
         start = initial_state(dataset, TrainerConfig(method=method, background="white", init_background_points=backdrop, init_random_points=300))
         trainer = GaussianTrainer(start.model, start.config, scene_extent=3.0)
         assert trainer.training_background(dataset) == expected, (method, backdrop)

@@ -113,8 +113,24 @@ def _held_out(dataset, method, **overrides):
 
 
 def test_mcmc_holds_up_against_vanilla_off_the_training_ring(outdoor):
-    vanilla, n_vanilla = _held_out(outdoor, "vanilla")
+    # Against vanilla without its backdrop, as this test was written: with it (the default now) vanilla
+    # reaches 29.4 dB here after 700 steps, far ahead of MCMC, whose small, half-opaque start (gsplat's
+    # MCMC preset) covers the frame more slowly; at the benchmark scenes' 3,000 steps (README) MCMC leads.
+    vanilla, n_vanilla = _held_out(outdoor, "vanilla", init_background_points=0)
     mcmc, n_mcmc = _held_out(outdoor, "mcmc", max_gaussians=None)
     print(f"vanilla {vanilla.round(1)} ({n_vanilla}), mcmc {mcmc.round(1)} ({n_mcmc})")
     assert mcmc.mean() >= vanilla.mean() - MARGIN_DB, (mcmc, vanilla)
     assert mcmc.min() >= mcmc.mean() - HAZE_DB, mcmc
+
+
+def test_vanilla_keeps_its_backdrop_through_the_size_prunes(outdoor):
+    # Opacity resets at steps 200 and 400, so that the size prunes (20 px on screen, 0.1 x extent in the
+    # world) run from step 250 to 600. The backdrop sphere lies 10 x the extent away: beyond backdrop_distance (5 x)
+    # it is exempt and stays; with 3DGS's prunes for every Gaussian it goes, and the sky becomes a veil.
+    overrides = dict(opacity_reset_every=200, reset_recovery=300)
+    kept, n_kept = _held_out(outdoor, "vanilla", **overrides)
+    pruned, n_pruned = _held_out(outdoor, "vanilla", backdrop_distance=None, **overrides)
+    print(f"backdrop kept {kept.round(1)} ({n_kept}), pruned {pruned.round(1)} ({n_pruned})")
+    # measured: kept 28.0 (worst 25.6), pruned 21.9 (worst 14.2); without a backdrop 21.5 (worst 13.9)
+    assert kept.mean() >= pruned.mean() + 2.0, (kept, pruned)
+    assert kept.min() >= kept.mean() - HAZE_DB, kept

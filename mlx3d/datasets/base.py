@@ -500,19 +500,27 @@ class Dataset:
         """Indices of the held-out test frames."""
         return list(self.splits.get("test", []))
 
+    def _camera_centres(self, indices) -> np.ndarray:
+        if indices is None:
+            indices = self.train or range(len(self.frames))
+        centers = np.array([self.frames[i].camera.center for i in indices], dtype=np.float64).reshape(-1, 3)
+        if len(centers) == 0:
+            raise ValueError("the scene's extent and centre need at least one camera")
+        return centers
+
     def scene_extent(self, indices: Sequence[int] | None = None) -> float:
         """3DGS's ``cameras_extent``: 1.1 x the largest distance of a camera centre from their mean.
 
         indices: the cameras to use; default the training split (as 3DGS), or
         every frame when the dataset has no training frames.
         """
-        if indices is None:
-            indices = self.train or range(len(self.frames))
-        centers = np.array([self.frames[i].camera.center for i in indices], dtype=np.float64).reshape(-1, 3)
-        if len(centers) == 0:
-            raise ValueError("scene_extent needs at least one camera")
+        centers = self._camera_centres(indices)
         d = np.linalg.norm(centers - centers.mean(axis=0), axis=1)
         return float(d.max() * 1.1)
+
+    def scene_centre(self, indices: Sequence[int] | None = None) -> np.ndarray:
+        """(3,) the mean of the camera centres (the same cameras as ``scene_extent``)."""
+        return self._camera_centres(indices).mean(axis=0)
 
     # -- images
 

@@ -10,7 +10,9 @@ removed rows go). Decisions are made in numpy on small per-Gaussian vectors.
   into two samples drawn from themselves with scales divided by 1.6.
 - Pruned: split originals, opacity below ``min_opacity``, and — once
   ``max_screen_size`` is set — those larger than it on screen (pixels) or
-  than 0.1 · scene extent in the world.
+  than 0.1 · scene extent in the world, except the backdrop: Gaussians
+  farther than ``backdrop_radius`` from ``scene_centre`` (a sky or a far
+  environment behind opaque photos must be large, on screen and in the world).
 - ``max_gaussians`` caps growth: the candidates with the largest gradients win.
 """
 
@@ -53,8 +55,13 @@ def densify_and_prune(
     max_radii=None,
     max_gaussians: int | None = None,
     rng: np.random.Generator | None = None,
+    scene_centre=None,
+    backdrop_radius: float | None = None,
 ) -> tuple[dict, dict]:
-    """One densification round. Returns (new params, counts {'cloned', 'split', 'pruned'})."""
+    """One densification round. Returns (new params, counts {'cloned', 'split', 'pruned'}).
+
+    scene_centre (3,) and backdrop_radius (scene units): Gaussians farther than
+    that from the centre are exempt from the size prunes; None: none is."""
     rng = rng or np.random.default_rng(0)
     n = params["means"].shape[0]
     count = np.asarray(grad_count, dtype=np.float64)
@@ -97,11 +104,15 @@ def densify_and_prune(
     prune[:n] |= split
     if max_screen_size is not None:
         world_max = np.exp(np.array(params["scales"], dtype=np.float64).max(axis=1))
-        prune |= world_max > 0.1 * scene_extent
+        too_big = world_max > 0.1 * scene_extent
         if max_radii is not None:
             radii = np.zeros(total)
             radii[:n] = np.asarray(max_radii, dtype=np.float64)
-            prune |= radii > max_screen_size
+            too_big |= radii > max_screen_size
+        if scene_centre is not None and backdrop_radius is not None:
+            distance = np.linalg.norm(np.array(params["means"], dtype=np.float64) - np.asarray(scene_centre, np.float64), axis=1)
+            too_big &= distance <= backdrop_radius
+        prune |= too_big
     params = _keep(params, optimizer, ~prune)
     return params, {"cloned": int(clone.sum()), "split": int(split.sum()), "pruned": int(prune.sum()) - int(split.sum())}
 

@@ -25,8 +25,11 @@ resolved (so what runs is what is printed and saved) and notes for the user.
   backdrop far away removes the incentive: ``init_background_points`` points
   on a sphere of radius ``init_background_radius`` × the scene extent around
   the camera centroid, kept where a training view sees them and coloured by
-  the mean training pixel they project to. On by default for MCMC on opaque
-  photos (None); 0 turns it off, a count forces it for any method.
+  the mean training pixel they project to. On by default for vanilla and MCMC
+  on opaque photos (None; not for 2DGS, whose surfels are meant for meshes);
+  0 turns it off, a count forces it for any method. Vanilla keeps it through
+  its size prunes: the trainer's ``backdrop_distance`` exempts Gaussians that
+  far from the cameras from them.
 - **Opacity and scale.** ``init_opacity`` and ``init_scale`` (a factor on the
   mean distance to the 3 nearest points): 0.1 and 1 for vanilla and 2DGS as in
   3DGS; 0.5 and 0.1 for MCMC, as in gsplat's MCMC preset (many
@@ -45,6 +48,8 @@ import numpy as np
 
 from ..errors import Mlx3dError
 from ..splatting.model import GaussianModel
+
+BACKDROP_METHODS = ("vanilla", "mcmc")  # methods that seed a backdrop on opaque photos by default
 
 MCMC_MAX_BUDGET = 1_000_000  # gsplat's and 3DGS-MCMC's default cap_max
 OPAQUE_ALPHA = 0.99  # a photo whose coverage is at least this everywhere has no background to leave out
@@ -126,8 +131,7 @@ def background_sphere(dataset, count: int, radius_factor: float = 10.0, seed: in
     the training cameras' centroid, where a training view sees them, coloured by the mean of the
     training pixels they project to. Returns (points (M, 3) float32, colours (M, 3) uint8, radius)."""
     train = list(dataset.train)
-    centres = np.array([dataset.frames[i].camera.center for i in train], dtype=np.float64)
-    centre = centres.mean(axis=0)
+    centre = dataset.scene_centre()
     radius = radius_factor * dataset.scene_extent()
     rng = np.random.default_rng(seed)
     images = [(dataset.frames[i].camera, dataset.load_image(i, background="black")[0]) for i in train]
@@ -203,7 +207,7 @@ def initial_state(dataset, config, sh_degree: int = 3) -> InitialState:
     opaque = opaque_photos(dataset)
     background = config.init_background_points
     if background is None:
-        background = max(1000, min(len(points) // 4, 20_000)) if config.method == "mcmc" and opaque else 0
+        background = max(1000, min(len(points) // 4, 20_000)) if config.method in BACKDROP_METHODS and opaque else 0
     seeded = 0
     if background > 0 and (cap is None or len(points) < cap):
         if cap is not None:

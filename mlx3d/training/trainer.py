@@ -86,6 +86,9 @@ class TrainerConfig:
     init_random_extent: float | None = None  # half-side of their cube (None: from the cameras)
     init_background_points: int | None = None  # None: auto (mcmc on opaque photos); 0: none
     init_background_radius: float = 10.0  # their sphere's radius, times the scene extent
+    # Gaussians farther than this × the scene extent from the cameras' centre are the backdrop: the size
+    # prunes (max_screen_size, 0.1 × extent) leave them alone; None: 3DGS's prunes for every Gaussian.
+    backdrop_distance: float | None = 5.0
     # 3DGS as Markov Chain Monte Carlo (method='mcmc'); relocation/growth run on the densify schedule
     mcmc_min_opacity: float = 0.005  # "dead" below this opacity
     mcmc_relocate_frac: float = 1.0  # at most this fraction of N relocated per event
@@ -185,13 +188,17 @@ class GaussianTrainer:
 
     scene_extent: radius of the camera centres (the dataset's ``scene_extent()``);
     it scales the means learning rate and the densification thresholds. A
-    non-positive extent (e.g. a single camera) is taken as 1.
+    non-positive extent (e.g. a single camera) is taken as 1. scene_centre:
+    (3,) their mean (the dataset's ``scene_centre()``; ``fit`` takes it from
+    its dataset when not given), where ``backdrop_distance`` is measured from.
     """
 
-    def __init__(self, model: GaussianModel, config: TrainerConfig | None = None, scene_extent: float = 1.0, num_images: int | None = None):
+    def __init__(self, model: GaussianModel, config: TrainerConfig | None = None, scene_extent: float = 1.0, num_images: int | None = None,
+                 scene_centre=None):
         self.model = model
         self.config = config or TrainerConfig()
         self.scene_extent = float(scene_extent) if scene_extent > 0 else 1.0
+        self.scene_centre = None if scene_centre is None else np.asarray(scene_centre, np.float64).reshape(3)
         self.bilateral = None  # the BilateralGrid when enabled (needs num_images; fit() knows it)
         self.grid_optimizer = None
         if self.config.bilateral_grid and num_images:
@@ -370,7 +377,8 @@ class GaussianTrainer:
             params, counts = densify_and_prune(
                 self.model.params, self.grad_accum, self.grad_count, c.densify_grad_threshold, self.scene_extent, c.percent_dense,
                 c.prune_opacity, self.optimizer, c.max_screen_size if self.opacity_resets else None, self.max_radii,
-                c.max_gaussians, self.rng,
+                c.max_gaussians, self.rng, self.scene_centre,
+                None if c.backdrop_distance is None else c.backdrop_distance * self.scene_extent,
             )
             self._set_params(params)
             return counts
@@ -414,6 +422,8 @@ class GaussianTrainer:
             from .initial import image_pixels, mcmc_budget
 
             self.config = replace(self.config, max_gaussians=mcmc_budget(len(self.model), image_pixels(dataset)))
+        if self.scene_centre is None:
+            self.scene_centre = dataset.scene_centre()
         spec = self.training_background(dataset)
         history = []
         for i in range(steps):
@@ -451,6 +461,8 @@ class GaussianTrainer:
             grad_accum=self.grad_accum, grad_count=self.grad_count, max_radii=self.max_radii, scene_extent=np.array(self.scene_extent),
             rng_state=np.array(json.dumps(self.rng.bit_generator.state)),
         )
+        if self.scene_centre is not None:
+            state["scene_centre"] = self.scene_centre
         if self.bilateral is not None:
             self.grid_optimizer.sync(self.bilateral)
             state["bilateral_grid"] = np.array(self.bilateral.params)
@@ -464,7 +476,7 @@ class GaussianTrainer:
         with np.load(path) as data:
             state = {k: data[k] for k in data.files}
         model = GaussianModel({k: mx.array(state[f"param/{k}"]) for k in PARAM_NAMES})
-        trainer = cls(model, config, float(state["scene_extent"]))
+        trainer = cls(model, config, float(state["scene_extent"]), scene_centre=state.get("scene_centre"))
         trainer.optimizer.load_state_dict({k[5:]: v for k, v in state.items() if k.startswith("adam/")})
         trainer.step_count = int(state["step"])
         trainer.active_sh_degree = int(state["active_sh_degree"])
