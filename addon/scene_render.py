@@ -258,23 +258,30 @@ def render_blender_layer(scene, view_layer, hide, world: bool) -> BlenderLayer:
 
 # ------------------------------------------------------------------ splats
 class SplatSource:
-    """The splat objects' attributes, read once; ``model`` bakes their world matrices of the current frame."""
+    """The splat objects' attributes, read once; ``model`` bakes their world matrices of the current
+    frame (the last model is reused while the objects and their matrices stay the same)."""
 
     def __init__(self):
         self._arrays: dict = {}
+        self._last = (None, None)  # (objects and matrices, model)
         self.messages: list = []
 
     def model(self, objects, depsgraph) -> GaussianModel:
+        matrices = [np.array(obj.evaluated_get(depsgraph).matrix_world, np.float64) for obj in objects]
+        key = tuple((obj.name_full, m.tobytes()) for obj, m in zip(objects, matrices))
+        if self._last[0] == key:
+            return self._last[1]
         parts = []
-        for obj in objects:
+        for obj, matrix in zip(objects, matrices):
             if obj.name_full not in self._arrays:
                 arrays, warnings = read_splats(obj)
                 self._arrays[obj.name_full] = arrays
                 self.messages += warnings
             arrays = self._arrays[obj.name_full]
-            matrix = np.array(obj.evaluated_get(depsgraph).matrix_world, np.float64)
             parts.append(arrays if is_identity(matrix) else transform_splats(arrays, matrix))
-        return GaussianModel.from_arrays(parts[0] if len(parts) == 1 else merge_splats(parts))
+        model = GaussianModel.from_arrays(parts[0] if len(parts) == 1 else merge_splats(parts))
+        self._last = (key, model)
+        return model
 
 
 # ------------------------------------------------------------------ a frame
@@ -478,7 +485,7 @@ class AnimationRender:
             return []
         self._closed = True
         self.scene.frame_set(self._original_frame[0], subframe=self._original_frame[1])
-        messages = []
+        messages = list(self._source.messages)
         if self.movie and self.written:
             messages.append(f"wrote {encode_movie(self.scene, self.written, self.frames[0], self.out_dir)}")
         if self._movie_dir:
@@ -540,12 +547,13 @@ def encode_movie(scene, frames: list, first: int, out_dir=None) -> str:
 
 def render_image(scene, *, filepath=None, antialias: bool = False, view_layer=None, backend: str = "auto"):
     """Composite the current frame into the image ``RENDER_IMAGE`` (and a PNG at ``filepath``); returns (image, messages)."""
-    result = render_frame(scene, view_layer=view_layer, antialias=antialias, backend=backend)
+    source = SplatSource()
+    result = render_frame(scene, view_layer=view_layer, antialias=antialias, source=source, backend=backend)
     image = show_frame(result.rgba)
     plan = result.plan
     what = ", ".join(plan.splat_objects + plan.blender_objects) or "the world"
     messages = [f"rendered {what} through '{scene.camera.name}' at {plan.width}x{plan.height} ({', '.join(result.stages)}); "
-                + ", ".join(f"{k} {v:.2f} s" for k, v in result.seconds.items())]
+                + ", ".join(f"{k} {v:.2f} s" for k, v in result.seconds.items())] + source.messages
     if filepath:
         save_frame(scene, result.rgba, os.fspath(filepath), png=True)
         messages.append(f"saved {filepath}")
