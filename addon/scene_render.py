@@ -485,14 +485,16 @@ class AnimationRender:
             return []
         self._closed = True
         self.scene.frame_set(self._original_frame[0], subframe=self._original_frame[1])
-        messages = list(self._source.messages)
-        if self.movie and self.written:
-            messages.append(f"wrote {encode_movie(self.scene, self.written, self.frames[0], self.out_dir)}")
-        if self._movie_dir:
-            for path in self.written:
-                os.remove(path)
-            os.rmdir(self._movie_dir)
-        return messages
+        messages = []
+        try:
+            if self.movie and self.written:
+                messages.append(f"wrote {encode_movie(self.scene, self.written, self.frames[0], self.out_dir)}")
+        finally:
+            if self._movie_dir:
+                for path in self.written:
+                    os.remove(path)
+                os.rmdir(self._movie_dir)
+        return messages + self._source.messages
 
     def summary(self) -> str:
         where = os.path.dirname(self.written[0]) if self.written and not self.movie else "the movie"
