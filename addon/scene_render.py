@@ -486,14 +486,15 @@ class AnimationRender:
         self._closed = True
         self.scene.frame_set(self._original_frame[0], subframe=self._original_frame[1])
         messages = []
-        try:
-            if self.movie and self.written:
+        if self.movie and self.written:
+            try:
                 messages.append(f"wrote {encode_movie(self.scene, self.written, self.frames[0], self.out_dir)}")
-        finally:
-            if self._movie_dir:
-                for path in self.written:
-                    os.remove(path)
-                os.rmdir(self._movie_dir)
+            except (SceneRenderError, OSError, RuntimeError) as exc:  # the frames stay where they are
+                raise SceneRenderError(f"encoding the movie failed ({exc}); its {len(self.written)} frames are in {self._movie_dir}") from None
+        if self._movie_dir:
+            for path in self.written:
+                os.remove(path)
+            os.rmdir(self._movie_dir)
         return messages + self._source.messages
 
     def summary(self) -> str:
