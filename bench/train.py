@@ -2,7 +2,7 @@
 
     python bench/train.py DATA_DIR [DATA_DIR ...] [--suite DIR] [--methods vanilla,mcmc]
                           [--steps N | --milestones 1000,3000,7000] [--variants plain,grid | --bilateral-grid]
-                          [--max-gaussians N] [--random-points N] [--background white|black] [--jobs N]
+                          [--max-gaussians N] [--grid-lr LR] [--random-points N] [--background white|black] [--jobs N]
                           [--out bench/out/train] [--markdown PATH]
 
 Every DATA_DIR is a dataset folder ``mlx3d.datasets.load_dataset`` reads, its
@@ -67,7 +67,8 @@ def _child(args) -> None:
     dataset = load_dataset(args.data[0])
     config = TrainerConfig(method=method, steps=milestones[-1], max_gaussians=args.max_gaussians, background=background,
                            bilateral_grid=variant == "grid", init_random_points=args.random_points,
-                           opaque_background=None if args.opaque_background == "same" else args.opaque_background)
+                           opaque_background=None if args.opaque_background == "same" else args.opaque_background,
+                           **({"bilateral_grid_lr": args.grid_lr} if args.grid_lr is not None else {}))
     start = initial_state(dataset, config)
     for note in start.notes:
         print(f"[{label}] {note}", file=sys.stderr, flush=True)
@@ -191,6 +192,7 @@ def main() -> int:
     parser.add_argument("--variants", default="plain", help="comma-separated: plain, grid (with the bilateral grid); default plain")
     parser.add_argument("--bilateral-grid", action="store_true", help="also run every method with the bilateral grid (adds the grid variant)")
     parser.add_argument("--max-gaussians", type=int, default=None, metavar="N", help="Gaussian cap passed to the trainer (default: the method's own)")
+    parser.add_argument("--grid-lr", type=float, default=None, metavar="LR", help="the bilateral grids' learning rate (default: the trainer's)")
     parser.add_argument("--random-points", type=int, default=100_000, metavar="N",
                         help="scenes without points start from N random ones (default 100000, as the 3DGS reference)")
     parser.add_argument("--background", choices=("black", "white"), default="white", help="colour behind the renders and images with alpha (default white)")
@@ -263,6 +265,8 @@ def main() -> int:
             if args.max_gaussians is not None:
                 cmd += ["--max-gaussians", str(args.max_gaussians)]
             cmd += ["--random-points", str(args.random_points)]
+            if args.grid_lr is not None:
+                cmd += ["--grid-lr", str(args.grid_lr)]
             proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
             rows, tail = [], []
 
@@ -314,7 +318,7 @@ def main() -> int:
     os.makedirs(args.out, exist_ok=True)
     with open(os.path.join(args.out, "results.json"), "w") as f:
         json.dump({"machine": _machine_line(jobs), "platform": platform.platform(), "load": load.summary(), "jobs": jobs,
-                   "milestones": milestones, "background": args.background, "opaque_background": args.opaque_background, "max_gaussians": args.max_gaussians,
+                   "milestones": milestones, "background": args.background, "opaque_background": args.opaque_background, "max_gaussians": args.max_gaussians, "grid_lr": args.grid_lr,
                    "seconds": elapsed, "rows": rows}, f, indent=2)
     emit(table, args.markdown)
     return 1 if failed or any(refused.values()) else 0
