@@ -42,6 +42,36 @@ def test_bins_match_brute_force(seed, width, height, tile):
     assert (bins.tiles_x, bins.tiles_y) == (-(-width // tile), -(-height // tile))
 
 
+def test_threaded_binning_matches_a_numpy_oracle_for_any_thread_count():
+    # enough Gaussians that every thread gets a chunk (16,384 at least each), with depth ties and culled ones
+    from thread_counts import per_thread_count
+
+    rng = np.random.default_rng(5)
+    n, width, height, tile = 70_000, 320, 200, 16
+    means2d = rng.uniform(-10, [width + 10, height + 10], (n, 2))
+    radii = rng.integers(0, 20, n)
+    depths = np.round(rng.uniform(0.1, 5, n), 2)  # many ties: they sort by index
+    tiles_x, tiles_y = -(-width // tile), -(-height // tile)
+    lo = np.clip(np.floor((means2d - radii[:, None]) / tile), 0, [tiles_x, tiles_y]).astype(int)
+    hi = np.clip(np.floor((means2d + radii[:, None]) / tile) + 1, 0, [tiles_x, tiles_y]).astype(int)
+    tile_ids, keys, gauss = [], [], []
+    for dy in range(4):
+        for dx in range(4):
+            tx, ty = lo[:, 0] + dx, lo[:, 1] + dy
+            hit = (radii > 0) & (tx < hi[:, 0]) & (ty < hi[:, 1])
+            tile_ids.append((ty * tiles_x + tx)[hit])
+            keys.append(depths.astype(np.float32)[hit])
+            gauss.append(np.flatnonzero(hit))
+    assert (hi - lo).max() <= 4  # every tile covered
+    tile_ids, keys, gauss = (np.concatenate(a) for a in (tile_ids, keys, gauss))
+    order = np.lexsort((gauss, keys, tile_ids))
+    offsets = np.searchsorted(tile_ids[order], np.arange(tiles_x * tiles_y + 1))
+    results = per_thread_count(lambda: bin_tiles(means2d, radii, depths, width, height, tile), (1, 2, 3, 5))
+    for bins in results:
+        np.testing.assert_array_equal(np.array(bins.tile_offsets), offsets)
+        np.testing.assert_array_equal(np.array(bins.flatten_ids), gauss[order])
+
+
 def test_empty_and_all_culled():
     bins = bin_tiles(np.zeros((5, 2)), np.zeros(5), np.ones(5), 40, 30)
     assert np.array(bins.tile_offsets).tolist() == [0] * 7 and bins.flatten_ids.size == 0

@@ -18,6 +18,7 @@
 #include <vector>
 
 #include "bindings.h"
+#include "primitive_util.h"
 
 namespace nb = nanobind;
 using namespace nb::literals;
@@ -54,8 +55,33 @@ IntOut to_numpy(std::vector<int32_t>&& v) {
   return IntOut(heap->data(), 1, shape, owner);
 }
 
+// The tile rectangle of Gaussian i (empty when culled).
+Rect tile_rect(const float* m, const float* e, int64_t i, int tile_size, int32_t tiles_x, int32_t tiles_y) {
+  Rect r{0, 0, 0, 0};
+  const double ex = e[2 * i], ey = e[2 * i + 1];
+  if (ex > 0 && ey > 0) {
+    const double mx = m[2 * i], my = m[2 * i + 1];
+    r.x0 = clamp_tile(std::floor((mx - ex) / tile_size), tiles_x);
+    r.x1 = clamp_tile(std::floor((mx + ex) / tile_size) + 1, tiles_x);
+    r.y0 = clamp_tile(std::floor((my - ey) / tile_size), tiles_y);
+    r.y1 = clamp_tile(std::floor((my + ey) / tile_size) + 1, tiles_y);
+  }
+  return r;
+}
+
+// Calls fn(tile) for every tile of r.
+template <typename Fn>
+inline void for_each_tile(const Rect& r, int32_t tiles_x, Fn&& fn) {
+  for (int32_t ty = r.y0; ty < r.y1; ++ty)
+    for (int32_t tx = r.x0; tx < r.x1; ++tx) fn(static_cast<int64_t>(ty) * tiles_x + tx);
+}
+
+// Work layout (threaded; the result does not depend on the thread count): the depth-sorted Gaussians are cut
+// into one contiguous chunk per thread. Each chunk counts its entries per tile; a tile's bucket then holds
+// chunk 0's entries, then chunk 1's, ..., so chunk c starts writing tile t at offsets[t] + the counts of
+// chunks before c, and every thread fills its own part of each bucket in sorted order.
 std::pair<IntOut, IntOut> bin_tiles(const Vec2& means2d, const Vec2& extents, const Vec1& depths, int width, int height,
-                                    int tile_size) {
+                                    int tile_size, int num_threads) {
   const int64_t n = static_cast<int64_t>(means2d.shape(0));
   if (static_cast<int64_t>(extents.shape(0)) != n || static_cast<int64_t>(depths.shape(0)) != n)
     throw nb::value_error("bin_tiles: means2d, extents and depths must have the same number of rows");
@@ -69,43 +95,50 @@ std::pair<IntOut, IntOut> bin_tiles(const Vec2& means2d, const Vec2& extents, co
   std::vector<int32_t> ids;
   {
     nb::gil_scoped_release release;
+    constexpr int64_t kMinPerThread = 16384;
     std::vector<Rect> rects(n);
-    std::vector<int64_t> counts(num_tiles + 1, 0);
-    for (int64_t i = 0; i < n; ++i) {
-      Rect r{0, 0, 0, 0};
-      const double ex = e[2 * i], ey = e[2 * i + 1];
-      if (ex > 0 && ey > 0) {
-        const double mx = m[2 * i], my = m[2 * i + 1];
-        r.x0 = clamp_tile(std::floor((mx - ex) / tile_size), tiles_x);
-        r.x1 = clamp_tile(std::floor((mx + ex) / tile_size) + 1, tiles_x);
-        r.y0 = clamp_tile(std::floor((my - ey) / tile_size), tiles_y);
-        r.y1 = clamp_tile(std::floor((my + ey) / tile_size) + 1, tiles_y);
-        for (int32_t ty = r.y0; ty < r.y1; ++ty)
-          for (int32_t tx = r.x0; tx < r.x1; ++tx) ++counts[static_cast<int64_t>(ty) * tiles_x + tx];
-      }
-      rects[i] = r;
-    }
-    int64_t total = 0;
-    for (int64_t t = 0; t < num_tiles; ++t) {
-      offsets[t] = static_cast<int32_t>(total);
-      total += counts[t];
-    }
-    if (total > INT32_MAX) throw std::overflow_error("bin_tiles: more than 2^31 tile intersections");
-    offsets[num_tiles] = static_cast<int32_t>(total);
-    ids.resize(total);
+    parallel_ranges(n, num_threads, kMinPerThread, [&](int64_t a, int64_t b) {
+      for (int64_t i = a; i < b; ++i) rects[i] = tile_rect(m, e, i, tile_size, tiles_x, tiles_y);
+    });
     // Gaussians that touch a tile, by (depth key, index): unique 64-bit keys, so any sort is stable.
     std::vector<uint64_t> order;
     order.reserve(n);
     for (int64_t i = 0; i < n; ++i)
       if (rects[i].x1 > rects[i].x0 && rects[i].y1 > rects[i].y0) order.push_back((uint64_t(depth_key(d[i])) << 32) | uint64_t(i));
-    std::sort(order.begin(), order.end());
-    std::vector<int64_t> cursor(offsets.begin(), offsets.end() - 1);
-    for (const uint64_t key : order) {
-      const int32_t i = static_cast<int32_t>(key & 0xffffffffu);
-      const Rect& r = rects[i];
-      for (int32_t ty = r.y0; ty < r.y1; ++ty)
-        for (int32_t tx = r.x0; tx < r.x1; ++tx) ids[cursor[static_cast<int64_t>(ty) * tiles_x + tx]++] = i;
+    const int64_t k = static_cast<int64_t>(order.size());
+    const int chunks = resolve_threads(num_threads, static_cast<int>(std::max<int64_t>(1, (k + kMinPerThread - 1) / kMinPerThread)));
+    const int64_t step = (k + chunks - 1) / std::max(chunks, 1);
+    auto chunk_of = [&](int64_t a) { return static_cast<int>(step ? a / step : 0); };
+    // Sort each chunk, then merge neighbours pairwise.
+    parallel_ranges(k, chunks, kMinPerThread, [&](int64_t a, int64_t b) { std::sort(order.begin() + a, order.begin() + b); });
+    for (int64_t width_ = step; width_ > 0 && width_ < k; width_ *= 2)
+      for (int64_t a = 0; a + width_ < k; a += 2 * width_)
+        std::inplace_merge(order.begin() + a, order.begin() + a + width_, order.begin() + std::min(k, a + 2 * width_));
+    // Entries per (chunk, tile), then each chunk's first slot in each bucket.
+    std::vector<int64_t> counts(static_cast<size_t>(chunks) * num_tiles, 0);
+    parallel_ranges(k, chunks, kMinPerThread, [&](int64_t a, int64_t b) {
+      int64_t* c = &counts[static_cast<size_t>(chunk_of(a)) * num_tiles];
+      for (int64_t j = a; j < b; ++j) for_each_tile(rects[order[j] & 0xffffffffu], tiles_x, [&](int64_t t) { ++c[t]; });
+    });
+    int64_t total = 0;
+    for (int64_t t = 0; t < num_tiles; ++t) {
+      offsets[t] = static_cast<int32_t>(std::min<int64_t>(total, INT32_MAX));
+      for (int c = 0; c < chunks; ++c) {
+        const int64_t here = counts[static_cast<size_t>(c) * num_tiles + t];
+        counts[static_cast<size_t>(c) * num_tiles + t] = total;  // now: chunk c's first slot in tile t
+        total += here;
+      }
     }
+    if (total > INT32_MAX) throw std::overflow_error("bin_tiles: more than 2^31 tile intersections");
+    offsets[num_tiles] = static_cast<int32_t>(total);
+    ids.resize(total);
+    parallel_ranges(k, chunks, kMinPerThread, [&](int64_t a, int64_t b) {
+      int64_t* cursor = &counts[static_cast<size_t>(chunk_of(a)) * num_tiles];
+      for (int64_t j = a; j < b; ++j) {
+        const int32_t i = static_cast<int32_t>(order[j] & 0xffffffffu);
+        for_each_tile(rects[i], tiles_x, [&](int64_t t) { ids[cursor[t]++] = i; });
+      }
+    });
   }
   return {to_numpy(std::move(offsets)), to_numpy(std::move(ids))};
 }
@@ -113,9 +146,10 @@ std::pair<IntOut, IntOut> bin_tiles(const Vec2& means2d, const Vec2& extents, co
 }  // namespace
 
 void bind_binning(nb::module_& m) {
-  m.def("bin_tiles", &bin_tiles, "means2d"_a, "extents"_a, "depths"_a, "width"_a, "height"_a, "tile_size"_a = 16,
+  m.def("bin_tiles", &bin_tiles, "means2d"_a, "extents"_a, "depths"_a, "width"_a, "height"_a, "tile_size"_a = 16, "num_threads"_a = 0,
         "Tile intersections of Gaussians with (N,2) half-extents in pixels (0 = culled): returns\n"
-        "(tile_offsets int32 (tiles+1,), flatten_ids int32 (M,)) sorted by tile, depth, index.");
+        "(tile_offsets int32 (tiles+1,), flatten_ids int32 (M,)) sorted by tile, depth, index; the same for any\n"
+        "num_threads (0: all hardware threads).");
 }
 
 }  // namespace mlx3d

@@ -3,7 +3,8 @@
 A Gaussian with radius r > 0 and centre (mx, my) covers the tiles
 ``floor((mx ± r) / tile)`` × ``floor((my ± r) / tile)`` clipped to the image
 (inclusive). Intersections are sorted by tile id (row-major), then depth, then
-Gaussian index (C++ in ``mlx3d._core.bin_tiles``). Not differentiable.
+Gaussian index (C++ in ``mlx3d._core.bin_tiles``, threaded; the result does not
+depend on the thread count). Not differentiable.
 
 Given ``conics`` and ``opacities``, each axis' half-extent is tightened to the
 box of the ellipse where the Gaussian can reach alpha = 1/255,
@@ -71,7 +72,10 @@ def bin_tiles(means2d, radii, depths, width: int, height: int, tile_size: int = 
     tiles_x = -(-int(width) // tile_size)
     tiles_y = -(-int(height) // tile_size)
     extents = tile_extents(radii, conics, opacities)
-    offsets, ids = native.core().bin_tiles(_np(means2d, np.float32).reshape(-1, 2), extents, _np(depths, np.float32).reshape(-1), int(width), int(height), tile_size)
+    from .raster_cpu import get_num_threads  # the CPU kernels' thread setting; the result is the same for any
+
+    offsets, ids = native.core().bin_tiles(_np(means2d, np.float32).reshape(-1, 2), extents, _np(depths, np.float32).reshape(-1), int(width),
+                                           int(height), tile_size, get_num_threads())
     return Bins(mx.array(offsets), mx.array(ids), tiles_x, tiles_y, tile_size)
 
 
