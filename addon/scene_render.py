@@ -67,17 +67,18 @@ class SceneRenderError(SplatObjectError):
 
 # ------------------------------------------------------------------ what a frame needs
 def _render_visible(view_layer) -> list:
-    """Objects the render of ``view_layer`` draws: in an included collection that renders, not hidden
-    from renders, and the objects of the collections that visible empties instance."""
+    """(object, instanced) for the objects the render of ``view_layer`` draws: in an included collection
+    that renders, not hidden from renders, and (instanced) the objects of collections that visible empties
+    instance."""
     found, seen = [], set()
 
-    def add(obj):
+    def add(obj, instanced=False):
         if obj.name_full not in seen and not obj.hide_render:
             seen.add(obj.name_full)
-            found.append(obj)
+            found.append((obj, instanced))
             if obj.instance_type == "COLLECTION" and obj.instance_collection is not None:
                 for inner in obj.instance_collection.all_objects:
-                    add(inner)
+                    add(inner, True)
 
     def walk(layer_collection):
         if layer_collection.exclude or layer_collection.collection.hide_render:
@@ -132,8 +133,9 @@ def plan_frame(scene, view_layer=None) -> FramePlan:
         raise SceneRenderError(f"scene '{scene.name}' has no active camera to render from")
     view_layer = view_layer or scene.view_layers[0]
     visible = _render_visible(view_layer)
-    splats = tuple(o.name for o in visible if is_splat_object(o))
-    others = tuple(o.name for o in visible if o.type in DRAWN_TYPES and not is_splat_object(o))
+    # splat objects drawn through a collection instance are left out (the instancer's matrix is not applied)
+    splats = tuple(o.name for o, instanced in visible if is_splat_object(o) and not instanced)
+    others = tuple(o.name for o, _ in visible if o.type in DRAWN_TYPES and not is_splat_object(o))
     if scene.render.film_transparent:
         world = "transparent"
     else:
