@@ -101,7 +101,7 @@ class TrainerConfig:
     # per-image affine colour grid absorbing exposure/white-balance differences (off unless enabled)
     bilateral_grid: bool = False
     bilateral_grid_shape: tuple = (16, 16, 8)
-    bilateral_grid_lr: float = 2e-3
+    bilateral_grid_lr: float | None = None  # None: 2e-3 (vanilla, 2dgs, as gsplat) or 1e-3 (mcmc, measured on bench_data's exposure scene)
     bilateral_grid_warmup: int | None = None  # lr rises linearly from 1% over these steps, then decays to 1% at `steps`;
     # None: steps / 30, at most 1,000 (gsplat's 1,000 of 30,000)
     lambda_bilateral_tv: float = 10.0
@@ -142,6 +142,10 @@ class TrainerConfig:
             self.densify_until = 25_000 if mcmc else 15_000
         if self.init_opacity is None:
             self.init_opacity = 0.5 if mcmc else 0.1
+        if self.bilateral_grid_lr is None:
+            self.bilateral_grid_lr = 1e-3 if mcmc else 2e-3
+        if not self.bilateral_grid_lr > 0:
+            raise ValueError(f"bilateral_grid_lr must be > 0, got {self.bilateral_grid_lr}")
         if self.init_scale is None:
             self.init_scale = 0.1 if mcmc else 1.0
         if not 0.0 < self.init_opacity < 1.0:
