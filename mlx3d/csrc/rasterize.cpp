@@ -35,7 +35,8 @@
 // *tile entry* (one slot per flatten_ids position) by the single thread that
 // owns the tile, in a fixed order (pixel blocks in order; lanes summed
 // in lane order at the end of the tile). The per-Gaussian gradients are then the
-// sums of their entries' slots in flatten_ids order, done sequentially. No
+// sums of their entries' slots in flatten_ids order: each thread owns a range
+// of Gaussian ids and adds its Gaussians' slots in that order. No
 // floating-point sum depends on the thread count or on scheduling, so 1 and
 // many threads give bitwise-identical results. Tiles are processed in chunks
 // of consecutive tiles to bound the slot buffer (same summation order).
@@ -799,7 +800,7 @@ struct BackwardIn {
 
 // Accumulates the tile's gradients into entry_grad[(e - lo) * K + field]
 // (K = 6 + C fields: mean_x, mean_y, conic a, b, c, opacity, features), which
-// the caller zeroed. Pixel blocks are kLanes consecutive pixels in row-major
+// the caller zeroed for the tile's entries. Pixel blocks are kLanes consecutive pixels in row-major
 // order (the lane sums, and so the gradients' last bits, depend on this
 // grouping); each walks back from the largest `last` of its pixels, over the
 // entries that reach it.
@@ -1089,14 +1090,19 @@ struct GradOut {
   float* opacities;
 };
 
+// Per-Gaussian ranges of at least this many Gaussians per thread for the output passes.
+constexpr int64_t kMinGaussiansPerThread = 4096;
+
 void run_backward(Inputs in, const Geometry& geo, int num_threads, const BackwardIn& bw, const GradOut& out) {
   const int C = geo.channels;
   const int K = kGradFixed + C;
   const int64_t N = geo.num_gaussians;
-  std::fill_n(out.means, N * 2, 0.0f);
-  std::fill_n(out.conics, N * 3, 0.0f);
-  std::fill_n(out.features, N * C, 0.0f);
-  std::fill_n(out.opacities, N, 0.0f);
+  parallel_ranges(N, num_threads, kMinGaussiansPerThread, [out, C](int64_t g0, int64_t g1) {
+    std::fill(out.means + 2 * g0, out.means + 2 * g1, 0.0f);
+    std::fill(out.conics + 3 * g0, out.conics + 3 * g1, 0.0f);
+    std::fill(out.features + C * g0, out.features + C * g1, 0.0f);
+    std::fill(out.opacities + g0, out.opacities + g1, 0.0f);
+  });
   const int tiles = geo.num_tiles();
   if (N == 0 || geo.num_entries == 0 || tiles == 0) return;
   const std::vector<int64_t> ranges = sanitise_offsets(in.offsets, geo);
@@ -1106,31 +1112,46 @@ void run_backward(Inputs in, const Geometry& geo, int num_threads, const Backwar
   in.splats = splats.data();
   std::vector<Scratch> scratch(threads);
   const BackwardTileFn backward_tile = pick_backward(C);
-  // Chunks of consecutive tiles holding at most ~4M slot floats (or one tile).
+  // Chunks of consecutive tiles holding at most ~4M slot floats (or one tile). The slot buffer is
+  // left uninitialised: each tile zeroes its own slots on the thread that fills them.
   const int64_t budget = std::max<int64_t>(1, (int64_t(1) << 22) / K);
-  std::vector<float> entry_grad;
+  int64_t largest = 0;
+  for (int t0 = 0; t0 < tiles;) {
+    int t1 = t0 + 1;
+    while (t1 < tiles && ranges[t1 + 1] - ranges[t0] <= budget) ++t1;
+    largest = std::max(largest, ranges[t1] - ranges[t0]);
+    t0 = t1;
+  }
+  std::unique_ptr<float[]> entry_grad(new float[static_cast<size_t>(largest) * K]);
+  float* slots = entry_grad.get();
   for (int t0 = 0; t0 < tiles;) {
     int t1 = t0 + 1;
     while (t1 < tiles && ranges[t1 + 1] - ranges[t0] <= budget) ++t1;
     const int64_t lo0 = ranges[t0], hi1 = ranges[t1];
-    entry_grad.assign(static_cast<size_t>(hi1 - lo0) * K, 0.0f);
     parallel_tiles(t0, t1, threads, scratch, [&](int t, Scratch& s) {
-      backward_tile(in, geo, t, s, bw, entry_grad.data() + (ranges[t] - lo0) * K);
+      float* own = slots + (ranges[t] - lo0) * K;
+      std::fill(own, own + (ranges[t + 1] - ranges[t]) * K, 0.0f);
+      backward_tile(in, geo, t, s, bw, own);
     });
-    // Per-Gaussian sums over its entries, in flatten_ids order.
-    for (int64_t e = lo0; e < hi1; ++e) {
-      const int64_t g = in.ids[e];
-      if (g < 0 || g >= N) continue;
-      const float* v = entry_grad.data() + (e - lo0) * K;
-      out.means[2 * g] += v[0];
-      out.means[2 * g + 1] += v[1];
-      out.conics[3 * g] += v[2];
-      out.conics[3 * g + 1] += v[3];
-      out.conics[3 * g + 2] += v[4];
-      out.opacities[g] += v[5];
-      float* fo = out.features + g * C;
-      for (int ch = 0; ch < C; ++ch) fo[ch] += v[kGradFixed + ch];
-    }
+    // Per-Gaussian sums over its entries, in flatten_ids order. Each thread owns a range of
+    // Gaussian ids and walks all of the chunk's entries, adding only those of its own Gaussians:
+    // every sum runs in the same order for any thread count.
+    const int32_t* ids = in.ids;
+    parallel_ranges(N, num_threads, kMinGaussiansPerThread, [out, ids, slots, lo0, hi1, C, K](int64_t g0, int64_t g1) {
+      for (int64_t e = lo0; e < hi1; ++e) {
+        const int64_t g = ids[e];
+        if (g < g0 || g >= g1) continue;
+        const float* v = slots + (e - lo0) * K;
+        out.means[2 * g] += v[0];
+        out.means[2 * g + 1] += v[1];
+        out.conics[3 * g] += v[2];
+        out.conics[3 * g + 1] += v[3];
+        out.conics[3 * g + 2] += v[4];
+        out.opacities[g] += v[5];
+        float* fo = out.features + g * C;
+        for (int ch = 0; ch < C; ++ch) fo[ch] += v[kGradFixed + ch];
+      }
+    });
     t0 = t1;
   }
 }
