@@ -178,7 +178,7 @@ def child(args) -> None:
     from mlx3d.training import GaussianTrainer, TrainerConfig
 
     model, camera, target = _setup(args.gaussians, args.scale)
-    config = TrainerConfig(steps=10**6, densify_from=10**6, sh_increase_every=0)
+    config = TrainerConfig(steps=10**6, densify_from=10**6, sh_increase_every=0, cache_limit_gb=args.cache_limit)
     trainer = GaussianTrainer(model, config, scene_extent=5.0)
     trainer.active_sh_degree = 3
     for _ in range(2):  # warm-up: Adam moments, compilation
@@ -201,6 +201,8 @@ def child(args) -> None:
 def _run(gaussians: int, scale: float, threads: int, args) -> dict:
     cmd = [sys.executable, os.path.abspath(__file__), "--child", "--gaussians", str(gaussians), "--scale", str(scale),
            "--threads-one", str(threads), "--steps", str(args.steps)] + (["--profile"] if args.profile else [])
+    if args.cache_limit is not None:
+        cmd += ["--cache-limit", str(args.cache_limit)]
     env = dict(os.environ, MLX3D_NUM_THREADS=str(threads))
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
     if proc.returncode != 0:
@@ -214,6 +216,8 @@ def main() -> None:
     parser.add_argument("--threads", default="1,2", help="comma-separated thread counts (default 1,2)")
     parser.add_argument("--steps", type=int, default=5, help="timed steps per case (median reported; default 5)")
     parser.add_argument("--profile", action="store_true", help="also time each stage of the step on its own")
+    parser.add_argument("--cache-limit", type=float, metavar="GB",
+                        help="TrainerConfig.cache_limit_gb: MLX's buffer cache limit (default: the trainer's own choice)")
     parser.add_argument("--markdown", metavar="PATH", help="also write the tables here")
     parser.add_argument("--json", metavar="PATH", help="also write the raw results here")
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
