@@ -54,9 +54,7 @@ class AdamStep : public CpuPrimitive {
       : CpuPrimitive(stream, "Apple GPUs use the MLX expression in mlx3d.training.adam"), s_(s), num_threads_(num_threads) {}
 
   void eval_cpu(const std::vector<mx::array>& inputs, std::vector<mx::array>& outputs) override {
-    // p', m', v' take over the buffers of p, m, v where nothing else holds them (the usual case in
-    // training, where the step replaces them): run_adam reads element i before writing it.
-    auto& encoder = prepare_outputs(*this, inputs, outputs, {0, 2, 3});
+    auto& encoder = prepare_outputs(*this, inputs, outputs);
     const float *p = inputs[0].data<float>(), *g = inputs[1].data<float>(), *m = inputs[2].data<float>(), *v = inputs[3].data<float>();
     float *po = outputs[0].data<float>(), *mo = outputs[1].data<float>(), *vo = outputs[2].data<float>();
     const int64_t n = inputs[0].size();

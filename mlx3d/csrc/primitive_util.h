@@ -58,22 +58,11 @@ void parallel_ranges(int64_t n, int num_threads, int64_t min_per_thread, const F
 // Checks that every input is row-contiguous (the ops make them so before building a primitive, and the
 // kernels index them as plain arrays), allocates the outputs and registers every array with the primitive's
 // CPU command encoder, which it returns.
-// Output i reuses the buffer of input donors[i] (-1 or absent: none) when nothing else holds that input
-// (MLX's donation rule, as its own elementwise ops apply it): for kernels that write element k of the
-// output only after reading element k of the input, so that a step need not allocate and first-touch
-// fresh buffers for the state it replaces.
 inline mlx::core::cpu::CommandEncoder& prepare_outputs(mlx::core::Primitive& primitive, const std::vector<mlx::core::array>& inputs,
-                                                       std::vector<mlx::core::array>& outputs, const std::vector<int>& donors = {}) {
+                                                       std::vector<mlx::core::array>& outputs) {
   for (const auto& a : inputs)
     if (!a.flags().row_contiguous) throw std::runtime_error(std::string(primitive.name()) + ": internal error: non-contiguous input");
-  for (size_t i = 0; i < outputs.size(); ++i) {
-    const int d = i < donors.size() ? donors[i] : -1;
-    auto& o = outputs[i];
-    if (d >= 0 && inputs[d].is_donatable() && inputs[d].nbytes() == o.nbytes() && inputs[d].dtype() == o.dtype())
-      o.copy_shared_buffer(inputs[d]);
-    else
-      o.set_data(mlx::core::allocator::malloc(o.nbytes()));
-  }
+  for (auto& o : outputs) o.set_data(mlx::core::allocator::malloc(o.nbytes()));
   auto& encoder = mlx::core::cpu::get_command_encoder(primitive.stream());
   for (const auto& a : inputs) encoder.set_input_array(a);
   for (auto& o : outputs) encoder.set_output_array(o);
