@@ -217,6 +217,20 @@ def test_nan_guard_keeps_the_last_good_parameters():
         np.testing.assert_array_equal(np.array(v), before[k])
 
 
+def test_all_finite_agrees_with_numpy_isfinite():
+    from mlx3d.training.trainer import all_finite
+
+    rng = np.random.default_rng(5)
+    base = [rng.normal(size=(1000, 3)).astype(np.float32), rng.normal(size=(200, 15, 3)).astype(np.float32)]
+    base[0][:10] = 3e38  # finite values whose sum overflows float32
+    assert bool(all_finite([mx.array(a) for a in base]))
+    for bad in (np.nan, np.inf, -np.inf):
+        for which in range(2):
+            arrays = [a.copy() for a in base]
+            arrays[which].flat[rng.integers(arrays[which].size)] = bad
+            assert bool(all_finite([mx.array(a) for a in arrays])) == all(np.isfinite(a).all() for a in arrays) == False  # noqa: E712
+
+
 def test_checkpoint_resume_is_exact(tmp_path):
     model, cams, targets = small_problem(3)
     config = TrainerConfig(steps=30, densify_from=4, densify_every=5, densify_grad_threshold=1e-7, sh_increase_every=4)
