@@ -15,6 +15,9 @@ statistics), so the table says where the time goes and which stages use the
 second core. Memory bandwidth (a numpy triad on 256 MB arrays, one core) gives
 the bytes-moved floor of the per-Gaussian stages.
 
+``--cache-limit GB`` sets ``TrainerConfig.cache_limit_gb`` (MLX's buffer
+cache) in each case, to weigh buffer reuse against peak RSS.
+
     python bench/train_scale.py                          # the four cases of the scale table
     python bench/train_scale.py --cases 138766:1 --threads 1,2 --profile --markdown bench/out/train_scale.md
 """

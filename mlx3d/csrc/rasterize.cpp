@@ -1118,18 +1118,19 @@ void accumulate_entries(Inputs in, const Geometry& geo, int num_threads, const B
   // Chunks of consecutive tiles holding at most ~4M slot floats (or one tile). The slot buffer is
   // left uninitialised: each tile zeroes its own slots on the thread that fills them.
   const int64_t budget = std::max<int64_t>(1, (int64_t(1) << 22) / K);
+  std::vector<int> chunk_start{0};  // first tile of each chunk, then `tiles`
   int64_t largest = 0;
-  for (int t0 = 0; t0 < tiles;) {
+  while (chunk_start.back() < tiles) {
+    const int t0 = chunk_start.back();
     int t1 = t0 + 1;
     while (t1 < tiles && ranges[t1 + 1] - ranges[t0] <= budget) ++t1;
     largest = std::max(largest, ranges[t1] - ranges[t0]);
-    t0 = t1;
+    chunk_start.push_back(t1);
   }
   std::unique_ptr<float[]> entry_grad(new float[static_cast<size_t>(largest) * K]);
   float* slots = entry_grad.get();
-  for (int t0 = 0; t0 < tiles;) {
-    int t1 = t0 + 1;
-    while (t1 < tiles && ranges[t1 + 1] - ranges[t0] <= budget) ++t1;
+  for (size_t c = 0; c + 1 < chunk_start.size(); ++c) {
+    const int t0 = chunk_start[c], t1 = chunk_start[c + 1];
     const int64_t lo0 = ranges[t0], hi1 = ranges[t1];
     parallel_tiles(t0, t1, threads, scratch, [&](int t, Scratch& s) {
       float* own = slots + (ranges[t] - lo0) * K;
@@ -1138,8 +1139,8 @@ void accumulate_entries(Inputs in, const Geometry& geo, int num_threads, const B
     });
     // The chunk's slots into the per-Gaussian sums, on one thread. This pass is bound by memory
     // latency (the Gaussians come in random order), so the next Gaussians' sums are prefetched.
-    // Splitting it by Gaussian-id range (each thread reading every entry) measured slower on two
-    // threads than on one.
+    // Splitting it among threads by Gaussian-id range measured slower on two threads than on one
+    // (README, "A training step at real-capture sizes").
     constexpr int64_t kAhead = 16;
     for (int64_t e = lo0; e < hi1; ++e) {
       if (e + kAhead < hi1) {
@@ -1152,7 +1153,6 @@ void accumulate_entries(Inputs in, const Geometry& geo, int num_threads, const B
       float* a = acc + g * K;
       for (int j = 0; j < K; ++j) a[j] += v[j];
     }
-    t0 = t1;
   }
 }
 
