@@ -430,10 +430,10 @@ def test_thread_count_gives_bitwise_identical_results():
 
 
 def test_thread_count_gives_bitwise_identical_gradients_over_many_chunks():
-    """Large enough that the backward pass runs its tiles in several chunks and sums the
-    per-Gaussian gradients on several threads (ranges of Gaussian ids): the same bits for any
-    thread count, and no entry lost between chunks: with dL/daccum = 1 and dL/dalpha = 0, the
-    feature gradients sum to the sum of the pixels' alphas (each pixel's weights sum to its alpha)."""
+    """Large enough that the backward pass runs its tiles in several chunks and zeroes and splits
+    the per-Gaussian records on several threads: the same bits for any thread count, and no entry
+    lost between chunks: with dL/daccum = 1 and dL/dalpha = 0, the feature gradients sum to the
+    sum of the pixels' alphas (each pixel's weights sum to its alpha)."""
     width = height = 128
     scene = random_scene(11, 80_000, width, height, 3, sigma=(4.0, 12.0))
     assert len(scene[5]) > 2 * ((1 << 22) // 9)  # more than two chunks of slots (K = 6 + 3 fields)

@@ -1183,7 +1183,6 @@ void run_backward(Inputs in, const Geometry& geo, int num_threads, const Backwar
   });
 }
 
-
 // ------------------------------------------------------------------ checks
 
 void check(bool ok, const std::string& msg) {
