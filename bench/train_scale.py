@@ -220,7 +220,7 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=5, help="timed steps per case (median reported; default 5)")
     parser.add_argument("--profile", action="store_true", help="also time each stage of the step on its own")
     parser.add_argument("--cache-limit", type=float, metavar="GB",
-                        help="TrainerConfig.cache_limit_gb: MLX's buffer cache limit (default: the trainer's own choice)")
+                        help="TrainerConfig.cache_limit_gb: MLX's buffer cache limit (default: MLX's own, 32 MB on Linux)")
     parser.add_argument("--markdown", metavar="PATH", help="also write the tables here")
     parser.add_argument("--json", metavar="PATH", help="also write the raw results here")
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)

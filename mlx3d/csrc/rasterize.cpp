@@ -801,10 +801,10 @@ struct BackwardIn {
 
 // Accumulates the tile's gradients into entry_grad[(e - lo) * K + field]
 // (K = 6 + C fields: mean_x, mean_y, conic a, b, c, opacity, features), which
-// the caller zeroed for the tile's entries. Pixel blocks are kLanes consecutive pixels in row-major
-// order (the lane sums, and so the gradients' last bits, depend on this
-// grouping); each walks back from the largest `last` of its pixels, over the
-// entries that reach it.
+// the caller zeroed for the tile's entries. Pixel blocks are kLanes
+// consecutive pixels in row-major order (the lane sums, and so the gradients'
+// last bits, depend on this grouping); each walks back from the largest
+// `last` of its pixels, over the entries that reach it.
 template <class LF, class LI, int CC>
 RM_INLINE void backward_tile_impl(const Inputs& in, const Geometry& geo, int t, Scratch& s, const BackwardIn& bw,
                                   float* entry_grad) {
