@@ -125,12 +125,23 @@ template <class V>
 RM_INLINE void store_lanes(void* p, const V& v) {
   std::memcpy(p, &v, sizeof(V));
 }
-// All lanes = v (no arithmetic, so -0.0f stays -0.0f).
+// All lanes = v, bit for bit (-0.0f stays -0.0f): the bits are broadcast as
+// integers, which compiles to one broadcast load (writing the lanes one by one
+// compiled to a chain of five shuffles on the port the kernels' blends use).
 template <class LF>
 RM_INLINE LF splat(float v) {
-  LF r;
-  for (int l = 0; l < lanes_of<LF>(); ++l) reinterpret_cast<float*>(&r)[l] = v;
-  return r;
+#if defined(MLX3D_RASTER_VECTOR_LANES)
+  int32_t bits;
+  std::memcpy(&bits, &v, sizeof(bits));
+  if constexpr (sizeof(LF) == sizeof(LaneF8)) {
+    return (LaneF8)(LaneI8{} + bits);
+  } else {
+    static_assert(sizeof(LF) == sizeof(LaneF4), "lane type");
+    return (LaneF4)(LaneI4{} + bits);
+  }
+#else
+  return v;
+#endif
 }
 template <class LI>
 RM_INLINE bool any_lane(const LI& m) {
