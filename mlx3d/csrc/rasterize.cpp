@@ -437,18 +437,58 @@ RM_INLINE bool reach_spans(const Splat& e, const TileBox& box, int& r0, int& r1,
   return true;
 }
 
-// Calls fn(b) once for each backward pixel block b (kLanes consecutive pixels
-// in row-major order within a tile of width w) holding a pixel of the spans,
-// in increasing order.
-template <int kLanes, class Fn>
-RM_INLINE void for_each_row_block(int r0, int r1, const int* lo, const int* hi, int w, Fn&& fn) {
-  int next = 0;  // blocks below are done (a block can span two rows)
-  for (int r = r0; r <= r1; ++r) {
-    if (lo[r] > hi[r]) continue;
-    const int b1 = (r * w + hi[r]) / kLanes;
-    for (int b = std::max((r * w + lo[r]) / kLanes, next); b <= b1; ++b) fn(b);
-    next = b1 + 1;
+// Block lists. Each entry's reach is turned into a bitset of the pixel
+// blocks it holds a pixel of (one bit per block, 64 per word), and a block's
+// list is then read off the entries' bits. Both steps are free of
+// data-dependent branches: the spans' shapes vary from entry to entry, and
+// branching on them mispredicted often enough to cost a third of the kernels'
+// time.
+
+// Sets bits [b0, b1] of `bits` (`words` words) when `any` (else nothing; b0
+// and b1 are then ignored, so they may be anything).
+RM_INLINE void set_block_range(uint64_t* bits, int words, int b0, int b1, bool any) {
+  if (words == 1) {  // tiles of up to 64 blocks (16x16 pixels with 4 or 8 lanes): no loop
+    const uint64_t range = (uint64_t(2) << (b1 & 63)) - (uint64_t(1) << (b0 & 63));
+    bits[0] |= any ? range : 0;
+    return;
   }
+  b0 = any ? b0 : 0;
+  b1 = any ? std::max(b0, b1) : 0;
+  for (int word = b0 >> 6; word <= b1 >> 6; ++word) {
+    const int first = std::max(b0, word << 6) & 63, last = std::min(b1, (word << 6) + 63) & 63;
+    bits[word] |= any ? (~uint64_t(0) >> (63 - (last - first))) << first : 0;
+  }
+}
+
+// The blocks holding a pixel of the spans (rows [r0, r1], columns [lo[r],
+// hi[r]] of a tile of width w): backward blocks are kLanes consecutive pixels
+// in row-major order (a block may span two rows).
+template <int kLanes>
+RM_INLINE void set_run_blocks(int r0, int r1, const int* lo, const int* hi, int w, int words, uint64_t* bits) {
+  for (int r = r0; r <= r1; ++r)
+    set_block_range(bits, words, (r * w + lo[r]) / kLanes, (r * w + hi[r]) / kLanes, lo[r] <= hi[r]);
+}
+
+// The same for forward blocks, kW x kH rectangles numbered row by row, bw per row.
+template <int kW, int kH>
+RM_INLINE void set_rect_blocks(int r0, int r1, const int* lo, const int* hi, int bw, int words, uint64_t* bits) {
+  for (int r = r0; r <= r1; ++r) {
+    const int row = (r / kH) * bw;
+    set_block_range(bits, words, row + lo[r] / kW, row + hi[r] / kW, lo[r] <= hi[r]);
+  }
+}
+
+// Writes to `list` the entries k0 + j, j in [0, n), whose bitset (`words`
+// words at bits + j * words) holds block b, in increasing order; returns how many.
+RM_INLINE int block_list(const uint64_t* bits, int words, int n, int b, int k0, int32_t* list) {
+  const uint64_t* col = bits + (b >> 6);
+  const int shift = b & 63;
+  int count = 0;
+  for (int j = 0; j < n; ++j) {
+    list[count] = k0 + j;
+    count += static_cast<int>((col[static_cast<size_t>(j) * words] >> shift) & 1);
+  }
+  return count;
 }
 
 // Per-thread scratch: the tile's Gaussians gathered contiguously, and lane buffers.
@@ -457,7 +497,8 @@ struct Scratch {
   std::vector<float> feat;                      // gathered features (more than kMaxFixedChannels)
   std::vector<float> lane;                      // per-block lane state
   std::vector<float> entry_lanes;               // backward: per-entry, per-field lane sums
-  std::vector<int32_t> list, count, cursor;     // per-block entry lists
+  std::vector<int32_t> list;                    // one block's entry list
+  std::vector<uint64_t> block_bits;             // per entry, the blocks its reach holds (see "block lists")
   std::vector<int32_t> block_kmax;              // backward: entries each block walks
   std::vector<uint8_t> done;                    // forward: blocks whose pixels all stopped
   std::vector<int32_t> span_lo, span_hi;        // one entry's column spans, per tile row
@@ -744,10 +785,9 @@ RM_INLINE void forward_tile_impl(const Inputs& in, const Geometry& geo, int t, S
   }
   s.reserve(n, C, box.h);
   s.done.assign(nb, 0);
-  s.count.resize(nb);
-  if (s.list.size() < static_cast<size_t>(nb) * kForwardChunk) s.list.resize(static_cast<size_t>(nb) * kForwardChunk);
-  int32_t* cnt = s.count.data();
-  int32_t* lists = s.list.data();
+  const int words = (nb + 63) / 64;
+  if (s.list.size() < static_cast<size_t>(kForwardChunk)) s.list.resize(kForwardChunk);
+  int32_t* list = s.list.data();
   uint8_t* done = s.done.data();
   int* span_lo = s.span_lo.data();
   int* span_hi = s.span_hi.data();
@@ -755,24 +795,18 @@ RM_INLINE void forward_tile_impl(const Inputs& in, const Geometry& geo, int t, S
   for (int k0 = 0; k0 < n && alive > 0; k0 += kForwardChunk) {
     const int k1 = std::min(n, k0 + kForwardChunk);
     s.gather(in, geo, lo, k0, k1);
-    std::fill_n(cnt, nb, 0);
+    s.block_bits.assign(static_cast<size_t>(k1 - k0) * words, 0);
     for (int k = k0; k < k1; ++k) {
       int r0, r1;
-      if (!reach_spans<kLanes == 8>(s.entries[k], box, r0, r1, span_lo, span_hi)) continue;
-      for (int by = r0 / kH; by <= r1 / kH; ++by) {
-        int c0 = box.w, c1 = -1;
-        for (int r = std::max(r0, by * kH); r <= std::min(r1, by * kH + kH - 1); ++r) {
-          c0 = std::min(c0, span_lo[r]);
-          c1 = std::max(c1, span_hi[r]);
-        }
-        for (int b = by * bw + c0 / kW; c0 <= c1 && b <= by * bw + c1 / kW; ++b)
-          if (!done[b]) lists[static_cast<size_t>(b) * kForwardChunk + cnt[b]++] = k;
-      }
+      if (reach_spans<kLanes == 8>(s.entries[k], box, r0, r1, span_lo, span_hi))
+        set_rect_blocks<kW, kH>(r0, r1, span_lo, span_hi, bw, words, &s.block_bits[static_cast<size_t>(k - k0) * words]);
     }
     for (int b = 0; b < nb; ++b) {
-      if (done[b] || cnt[b] == 0) continue;
+      if (done[b]) continue;
+      const int count = block_list(s.block_bits.data(), words, k1 - k0, b, k0, list);
+      if (count == 0) continue;
       LF* sb = st + static_cast<size_t>(b) * S;
-      if (!composite_block<LF, LI, CC, kSurface>(s, sb, C, lists + static_cast<size_t>(b) * kForwardChunk, cnt[b])) {
+      if (!composite_block<LF, LI, CC, kSurface>(s, sb, C, list, count)) {
         done[b] = 1;
         --alive;
       }
@@ -848,29 +882,18 @@ RM_INLINE void backward_tile_impl(const Inputs& in, const Geometry& geo, int t, 
   s.reserve(kmax, C, box.h);
   s.gather(in, geo, lo, 0, kmax);
 
-  // Per-block lists of entries (increasing), as offsets into s.list: count, then fill.
-  const int32_t* bkmax = s.block_kmax.data();
+  // The blocks each entry reaches (see "block lists").
   int* span_lo = s.span_lo.data();
   int* span_hi = s.span_hi.data();
-  s.count.assign(nb + 1, 0);
-  int32_t* start = s.count.data();
+  const int words = (nb + 63) / 64;
+  s.block_bits.assign(static_cast<size_t>(kmax) * words, 0);
   for (int k = 0; k < kmax; ++k) {
     int r0, r1;
-    if (!reach_spans<kLanes == 8>(s.entries[k], box, r0, r1, span_lo, span_hi)) continue;
-    for_each_row_block<kLanes>(r0, r1, span_lo, span_hi, box.w, [&](int b) { start[b + 1] += k < bkmax[b]; });
+    if (reach_spans<kLanes == 8>(s.entries[k], box, r0, r1, span_lo, span_hi))
+      set_run_blocks<kLanes>(r0, r1, span_lo, span_hi, box.w, words, &s.block_bits[static_cast<size_t>(k) * words]);
   }
-  for (int b = 0; b < nb; ++b) start[b + 1] += start[b];
-  s.cursor.assign(start, start + nb);
-  if (s.list.size() < static_cast<size_t>(start[nb])) s.list.resize(start[nb]);
-  int32_t* lists = s.list.data();
-  int32_t* cursor = s.cursor.data();
-  for (int k = 0; k < kmax; ++k) {
-    int r0, r1;
-    if (!reach_spans<kLanes == 8>(s.entries[k], box, r0, r1, span_lo, span_hi)) continue;
-    for_each_row_block<kLanes>(r0, r1, span_lo, span_hi, box.w, [&](int b) {
-      if (k < bkmax[b]) lists[cursor[b]++] = k;
-    });
-  }
+  if (s.list.size() < static_cast<size_t>(kmax)) s.list.resize(kmax);
+  int32_t* list = s.list.data();
 
   LF* behind = Scratch::lanes<LF>(s.lane, static_cast<size_t>(3) * C);  // per channel
   LF* prev_feat = behind + C;  // feature of the kept Gaussian behind
@@ -884,7 +907,9 @@ RM_INLINE void backward_tile_impl(const Inputs& in, const Geometry& geo, int t, 
   LF* sums = Scratch::lanes<LF>(s.entry_lanes, static_cast<size_t>(kmax) * K);  // [entry][field]
 
   for (int blk = 0; blk < nb; ++blk) {
-    if (start[blk + 1] == start[blk]) continue;  // no entry reaches it: it adds nothing
+    // The entries before the block's last contributor that reach it, in order.
+    const int count = block_list(s.block_bits.data(), words, s.block_kmax[blk], blk, 0, list);
+    if (count == 0) continue;  // no entry reaches it: it adds nothing
     LF px, py;
     LI valid;
     int64_t pix[kLanes];
@@ -912,10 +937,10 @@ RM_INLINE void backward_tile_impl(const Inputs& in, const Geometry& geo, int t, 
     // a batch first (independent of each other), then the recurrence.
     constexpr int kBatch = 8;
     LF gs[kBatch], alphas[kBatch];
-    for (int i1 = start[blk + 1]; i1 > start[blk]; i1 -= kBatch) {
-      const int nbatch = std::min(kBatch, i1 - start[blk]);
+    for (int i1 = count; i1 > 0; i1 -= kBatch) {
+      const int nbatch = std::min(kBatch, i1);
       for (int j = 0; j < nbatch; ++j) {
-        const Splat& e = s.entries[lists[i1 - 1 - j]];
+        const Splat& e = s.entries[list[i1 - 1 - j]];
         const LF dx = e.x - px;
         const LF dy = e.y - py;
         const LF power = rm_power(splat<LF>(e.a), splat<LF>(e.b), splat<LF>(e.c), dx, dy);
@@ -923,7 +948,7 @@ RM_INLINE void backward_tile_impl(const Inputs& in, const Geometry& geo, int t, 
         alphas[j] = rm_alpha(splat<LF>(e.op), gs[j], power);
       }
       for (int j = 0; j < nbatch; ++j) {
-        const int k = lists[i1 - 1 - j];
+        const int k = list[i1 - 1 - j];
         const LI use = ((izero + k) < nlast) & (alphas[j] > 0.0f);
         if (!any_lane(use)) continue;
         const Splat& e = s.entries[k];
