@@ -404,37 +404,53 @@ __attribute__((target("avx2"))) void row_spans_avx2(double cx, double cy, double
 }
 #endif
 
+// Whether the point (q, row) (tile-local pixel indices) lies in the ellipse
+// of the row spans, |q - (cx + slope dy)| <= sqrt(p - r dy²) with dy = cy - row,
+// with no margin (so the spans, which add one, hold q in that row).
+RM_INLINE bool in_span_ellipse(const Splat& e, double cx, double cy, int q, int row) {
+  const double dy = cy - row;
+  const double u = q - (cx + static_cast<double>(e.slope) * dy);
+  return u * u <= static_cast<double>(e.p) - static_cast<double>(e.r) * dy * dy;
+}
+
+// What reach_spans found: no pixel of the tile, the spans it wrote, or every
+// pixel of the tile (spans not written).
+enum class Reach { kNone, kSpans, kTile };
+
 // The reach of Splat e in the tile: rows [r0, r1] and, for each, tile-local
-// columns [lo[r], hi[r]] (inclusive; lo > hi: none). Returns false when it
-// holds no pixel of the tile. lo and hi need box.h + 3 entries.
+// columns [lo[r], hi[r]] (inclusive; lo > hi: none). lo and hi need box.h + 3
+// entries. When the reach box holds the whole tile and the tile's four corner
+// pixels lie in the spans' ellipse, which is convex, every row's span is the
+// full row: that is reported as Reach::kTile without computing the spans.
 template <bool kAvx2>
-RM_INLINE bool reach_spans(const Splat& e, const TileBox& box, int& r0, int& r1, int* lo, int* hi) {
+RM_INLINE Reach reach_spans(const Splat& e, const TileBox& box, int& r0, int& r1, int* lo, int* hi) {
   r0 = 0;
   r1 = box.h - 1;
   int c0 = 0, c1 = box.w - 1;
-  if (e.hx < 0.0f || e.hy < 0.0f) return false;
+  if (e.hx < 0.0f || e.hy < 0.0f) return Reach::kNone;
   const bool bounded = e.hx <= kReachMaxHalf && e.hy <= kReachMaxHalf && std::fabs(e.x) <= kReachMaxCoord &&
                        std::fabs(e.y) <= kReachMaxCoord;  // false for NaN too
-  if (!bounded) {
-    for (int r = r0; r <= r1; ++r) lo[r] = c0, hi[r] = c1;
-    return true;
-  }
+  if (!bounded) return Reach::kTile;
   // tile-local pixel column q has its centre at x0 + q + 0.5
   const double cx = static_cast<double>(e.x) - 0.5 - box.x0, cy = static_cast<double>(e.y) - 0.5 - box.y0;
   c0 = std::max(c0, static_cast<int>(std::ceil(cx - e.hx)));
   c1 = std::min(c1, static_cast<int>(std::floor(cx + e.hx)));
   r0 = std::max(r0, static_cast<int>(std::ceil(cy - e.hy)));
   r1 = std::min(r1, static_cast<int>(std::floor(cy + e.hy)));
-  if (c0 > c1 || r0 > r1) return false;
+  if (c0 > c1 || r0 > r1) return Reach::kNone;
+  const int w1 = box.w - 1, h1 = box.h - 1;
+  if (c0 == 0 && r0 == 0 && c1 == w1 && r1 == h1 && in_span_ellipse(e, cx, cy, 0, 0) &&
+      in_span_ellipse(e, cx, cy, w1, 0) && in_span_ellipse(e, cx, cy, 0, h1) && in_span_ellipse(e, cx, cy, w1, h1))
+    return Reach::kTile;
   const double margin = 1e-4 * e.hx + 0.01;
 #if defined(MLX3D_RASTER_AVX2)
   if constexpr (kAvx2) {
     row_spans_avx2(cx, cy, e.slope, e.p, e.r, margin, r0, r1, c0, c1, lo, hi);
-    return true;
+    return Reach::kSpans;
   }
 #endif
   row_spans_scalar(cx, cy, e.slope, e.p, e.r, margin, r0, r1, c0, c1, lo, hi);
-  return true;
+  return Reach::kSpans;
 }
 
 // Block lists. Each entry's reach is turned into a bitset of the pixel
@@ -458,6 +474,12 @@ RM_INLINE void set_block_range(uint64_t* bits, int words, int b0, int b1, bool a
     const int first = std::max(b0, word << 6) & 63, last = std::min(b1, (word << 6) + 63) & 63;
     bits[word] |= any ? (~uint64_t(0) >> (63 - (last - first))) << first : 0;
   }
+}
+
+// Sets the bits of all nb blocks.
+RM_INLINE void set_all_blocks(uint64_t* bits, int nb) {
+  for (int word = 0; word < (nb + 63) / 64; ++word)
+    bits[word] = nb - (word << 6) >= 64 ? ~uint64_t(0) : (uint64_t(1) << (nb - (word << 6))) - 1;
 }
 
 // The blocks holding a pixel of the spans (rows [r0, r1], columns [lo[r],
@@ -798,8 +820,10 @@ RM_INLINE void forward_tile_impl(const Inputs& in, const Geometry& geo, int t, S
     s.block_bits.assign(static_cast<size_t>(k1 - k0) * words, 0);
     for (int k = k0; k < k1; ++k) {
       int r0, r1;
-      if (reach_spans<kLanes == 8>(s.entries[k], box, r0, r1, span_lo, span_hi))
-        set_rect_blocks<kW, kH>(r0, r1, span_lo, span_hi, bw, words, &s.block_bits[static_cast<size_t>(k - k0) * words]);
+      uint64_t* bits = &s.block_bits[static_cast<size_t>(k - k0) * words];
+      const Reach reach = reach_spans<kLanes == 8>(s.entries[k], box, r0, r1, span_lo, span_hi);
+      if (reach == Reach::kTile) set_all_blocks(bits, nb);
+      if (reach == Reach::kSpans) set_rect_blocks<kW, kH>(r0, r1, span_lo, span_hi, bw, words, bits);
     }
     for (int b = 0; b < nb; ++b) {
       if (done[b]) continue;
@@ -889,8 +913,10 @@ RM_INLINE void backward_tile_impl(const Inputs& in, const Geometry& geo, int t, 
   s.block_bits.assign(static_cast<size_t>(kmax) * words, 0);
   for (int k = 0; k < kmax; ++k) {
     int r0, r1;
-    if (reach_spans<kLanes == 8>(s.entries[k], box, r0, r1, span_lo, span_hi))
-      set_run_blocks<kLanes>(r0, r1, span_lo, span_hi, box.w, words, &s.block_bits[static_cast<size_t>(k) * words]);
+    uint64_t* bits = &s.block_bits[static_cast<size_t>(k) * words];
+    const Reach reach = reach_spans<kLanes == 8>(s.entries[k], box, r0, r1, span_lo, span_hi);
+    if (reach == Reach::kTile) set_all_blocks(bits, nb);
+    if (reach == Reach::kSpans) set_run_blocks<kLanes>(r0, r1, span_lo, span_hi, box.w, words, bits);
   }
   if (s.list.size() < static_cast<size_t>(kmax)) s.list.resize(kmax);
   int32_t* list = s.list.data();
