@@ -601,7 +601,7 @@ def _variant(monkeypatch, isa):
 @pytest.mark.parametrize("cull", ["1", "0"])
 def test_frozen_outputs_are_bit_identical(monkeypatch, cull):
     """Outputs (accum, alpha, last, final_T) and gradients that the kernel wrote
-    before it culled pixel blocks (tests/data/raster_frozen.npz, seeded scenes:
+    without culling pixel blocks (tests/data/raster_frozen.npz, seeded scenes:
     translucent, opaque, very anisotropic, faint, degenerate and non-finite
     parameters, isolated Gaussians, alpha = 1/255 on pixel centres, signed
     zeros; 1 to 5 channels; tiles of 8, 12 and 16) are reproduced bit for bit,

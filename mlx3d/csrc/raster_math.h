@@ -112,6 +112,9 @@ RM_INLINE F rm_T_before(F T_after, F alpha) {
 // "behind" is the colour composited behind the current Gaussian divided by the
 // transmittance just behind it: B_i = Σ_{j>i} f_j α_j T_j / T_{i+1}. Stepping
 // from Gaussian i+1 (prev_alpha, prev_feature) to i: B_i = α f + (1 - α) B_{i+1}.
+// The Metal kernel runs it per channel; the CPU kernel runs it once on the
+// colours dotted with dL/daccum (f · dL/daccum), since dL/dα needs B only
+// through B · dL/daccum.
 template <typename F>
 RM_INLINE F rm_behind(F behind, F prev_alpha, F prev_feature) {
   return prev_alpha * prev_feature + (1.0f - prev_alpha) * behind;

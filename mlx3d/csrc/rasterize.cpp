@@ -921,15 +921,9 @@ RM_INLINE void backward_tile_impl(const Inputs& in, const Geometry& geo, int t, 
   if (s.list.size() < static_cast<size_t>(kmax)) s.list.resize(kmax);
   int32_t* list = s.list.data();
 
-  LF* behind = Scratch::lanes<LF>(s.lane, static_cast<size_t>(3) * C);  // per channel
-  LF* prev_feat = behind + C;  // feature of the kept Gaussian behind
-  LF* gacc = prev_feat + C;    // dL/daccum of the lanes' pixels
-  LF behind_reg[CC > 0 ? CC : 1], prev_feat_reg[CC > 0 ? CC : 1], gacc_reg[CC > 0 ? CC : 1];
-  if constexpr (CC > 0) {
-    behind = behind_reg;
-    prev_feat = prev_feat_reg;
-    gacc = gacc_reg;
-  }
+  LF* gacc = Scratch::lanes<LF>(s.lane, C);  // dL/daccum of the lanes' pixels, per channel
+  LF gacc_reg[CC > 0 ? CC : 1];
+  if constexpr (CC > 0) gacc = gacc_reg;
   LF* sums = Scratch::lanes<LF>(s.entry_lanes, static_cast<size_t>(kmax) * K);  // [entry][field]
 
   for (int blk = 0; blk < nb; ++blk) {
@@ -951,14 +945,17 @@ RM_INLINE void backward_tile_impl(const Inputs& in, const Geometry& geo, int t, 
     for (int ch = 0; ch < C; ++ch) {
       for (int l = 0; l < kLanes; ++l) gc[l] = pix[l] >= 0 ? bw.g_accum[pix[l] * C + ch] : 0.0f;
       gacc[ch] = load_lanes<LF>(gc);
-      behind[ch] = zero;
-      prev_feat[ch] = zero;
     }
     const LI nlast = load_lanes<LI>(nl);
     const LF T_final = load_lanes<LF>(tf);
     const LF g_alpha = load_lanes<LF>(ga);
     LF T = T_final;
     LF prev_alpha = zero;
+    // dL/dα needs the colour behind each Gaussian, B (see rm_behind), only
+    // through B · dL/daccum, which is linear in B: so the recurrence runs on
+    // the dotted colours, one lane vector instead of one per channel.
+    LF behind = zero;     // B · dL/daccum
+    LF prev_dot = zero;   // f · dL/daccum of the kept Gaussian behind
     // Back to front over the block's entries, in batches: exp and alpha of
     // a batch first (independent of each other), then the recurrence.
     constexpr int kBatch = 8;
@@ -990,15 +987,15 @@ RM_INLINE void backward_tile_impl(const Inputs& in, const Geometry& geo, int t, 
         prev_alpha = use ? alpha : prev_alpha;
         LF* ek = sums + static_cast<size_t>(k) * K;
         const float* f = s.template features<CC>(k, C);
-        LF dot = zero;
+        LF f_dot = zero;  // f · dL/daccum
         for (int ch = 0; ch < C; ++ch) {
-          const LF nbh = rm_behind(behind[ch], pa, prev_feat[ch]);
-          behind[ch] = use ? nbh : behind[ch];
-          dot += use ? (f[ch] - nbh) * gacc[ch] : 0.0f;
-          prev_feat[ch] = use ? zero + f[ch] : prev_feat[ch];
+          f_dot += splat<LF>(f[ch]) * gacc[ch];
           ek[kGradFixed + ch] += use ? w * gacc[ch] : 0.0f;
         }
-        const LF dl_dalpha = rm_dl_dalpha(T, dot, T_final, g_alpha, alpha);
+        const LF nbh = rm_behind(behind, pa, prev_dot);
+        behind = use ? nbh : behind;
+        prev_dot = use ? f_dot : prev_dot;
+        const LF dl_dalpha = rm_dl_dalpha(T, f_dot - nbh, T_final, g_alpha, alpha);  // used lanes only
         const RmGaussGrad<LF> gg = rm_gaussian_grad(ca, cb, cc, dx, dy, o, g, dl_dalpha);
         ek[0] += use ? gg.mean_x : 0.0f;
         ek[1] += use ? gg.mean_y : 0.0f;
