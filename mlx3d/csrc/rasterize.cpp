@@ -457,8 +457,8 @@ RM_INLINE Reach reach_spans(const Splat& e, const TileBox& box, int& r0, int& r1
 // blocks it holds a pixel of (one bit per block, 64 per word), and a block's
 // list is then read off the entries' bits. Both steps are free of
 // data-dependent branches: the spans' shapes vary from entry to entry, and
-// branching on them mispredicted often enough to cost a third of the kernels'
-// time.
+// loops and branches shaped by them mispredicted (building the lists took
+// about 30% of each kernel's time; README, "The tile kernels, per core").
 
 // Sets bits [b0, b1] of `bits` (`words` words) when `any` (else nothing; b0
 // and b1 are then ignored, so they may be anything).
