@@ -76,7 +76,7 @@ def bin_tiles(means2d, radii, depths, width: int, height: int, tile_size: int = 
 
     offsets, ids = native.core().bin_tiles(_np(means2d, np.float32).reshape(-1, 2), extents, _np(depths, np.float32).reshape(-1), int(width),
                                            int(height), tile_size, get_num_threads())
-    return Bins(mx.array(offsets), mx.array(ids), tiles_x, tiles_y, tile_size)
+    return Bins(offsets, ids, tiles_x, tiles_y, tile_size)
 
 
 def _grid(width: int, height: int, tile_size: int) -> tuple:
