@@ -476,12 +476,6 @@ RM_INLINE void set_block_range(uint64_t* bits, int words, int b0, int b1, bool a
   }
 }
 
-// Sets the bits of all nb blocks.
-RM_INLINE void set_all_blocks(uint64_t* bits, int nb) {
-  for (int word = 0; word < (nb + 63) / 64; ++word)
-    bits[word] = nb - (word << 6) >= 64 ? ~uint64_t(0) : (uint64_t(1) << (nb - (word << 6))) - 1;
-}
-
 // The blocks holding a pixel of the spans (rows [r0, r1], columns [lo[r],
 // hi[r]] of a tile of width w): backward blocks are kLanes consecutive pixels
 // in row-major order (a block may span two rows).
@@ -822,7 +816,7 @@ RM_INLINE void forward_tile_impl(const Inputs& in, const Geometry& geo, int t, S
       int r0, r1;
       uint64_t* bits = &s.block_bits[static_cast<size_t>(k - k0) * words];
       const Reach reach = reach_spans<kLanes == 8>(s.entries[k], box, r0, r1, span_lo, span_hi);
-      if (reach == Reach::kTile) set_all_blocks(bits, nb);
+      if (reach == Reach::kTile) set_block_range(bits, words, 0, nb - 1, true);
       if (reach == Reach::kSpans) set_rect_blocks<kW, kH>(r0, r1, span_lo, span_hi, bw, words, bits);
     }
     for (int b = 0; b < nb; ++b) {
@@ -915,7 +909,7 @@ RM_INLINE void backward_tile_impl(const Inputs& in, const Geometry& geo, int t, 
     int r0, r1;
     uint64_t* bits = &s.block_bits[static_cast<size_t>(k) * words];
     const Reach reach = reach_spans<kLanes == 8>(s.entries[k], box, r0, r1, span_lo, span_hi);
-    if (reach == Reach::kTile) set_all_blocks(bits, nb);
+    if (reach == Reach::kTile) set_block_range(bits, words, 0, nb - 1, true);
     if (reach == Reach::kSpans) set_run_blocks<kLanes>(r0, r1, span_lo, span_hi, box.w, words, bits);
   }
   if (s.list.size() < static_cast<size_t>(kmax)) s.list.resize(kmax);
