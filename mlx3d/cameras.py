@@ -591,8 +591,19 @@ class Camera:
 
     @property
     def camtoworld(self) -> np.ndarray:
-        """(4, 4) float64 camera-to-world pose (inverse of ``viewmat``), OpenCV axes."""
-        return np.linalg.inv(self.viewmat)
+        """(4, 4) float64 camera-to-world pose (inverse of ``viewmat``), OpenCV axes.
+
+        Inverted in closed form (rows of R^-1 from cross products): a LAPACK
+        inverse would wake numpy's BLAS threads, which then spin on the cores
+        the renderer's threads need, every step.
+        """
+        r, t = self.viewmat[:3, :3], self.viewmat[:3, 3]
+        adj = np.stack([np.cross(r[1], r[2]), np.cross(r[2], r[0]), np.cross(r[0], r[1])], axis=1)  # R adj = det(R) I
+        inv = adj / float(r[0] @ adj[:, 0])
+        out = np.eye(4)
+        out[:3, :3] = inv
+        out[:3, 3] = -(inv @ t)
+        return out
 
     @property
     def center(self) -> np.ndarray:

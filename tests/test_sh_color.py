@@ -75,6 +75,26 @@ def test_bitwise_identical_for_any_thread_count():
             np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.parametrize("backend", ["cpu", "reference"])
+@pytest.mark.parametrize("k, degree", [(16, 3), (16, 1), (1, 0)])
+def test_the_pair_sh_dc_sh_rest_renders_as_their_concatenation(backend, k, degree):
+    # a model's two SH parameters are read in place: the same colours, and each block's gradient is
+    # its slice of the concatenated array's gradient (bitwise on the CPU: the same sums in the same order)
+    sh, means, centre, rng = problem(k=k, scale=1.0)
+    dc, rest = mx.array(np.array(sh[:, :1])), mx.array(np.array(sh[:, 1:]))  # separate buffers, rest (N,0,3) when K = 1
+    cot = mx.array(rng.normal(0, 1, (sh.shape[0], 3)).astype(np.float32))
+    rgb, (g_sh, g_m) = mx.vjp(lambda s, m: sh_colors(s, m, centre, degree, backend), [sh, means], [cot])
+    rgb2, (g_dc, g_rest, g_m2) = mx.vjp(lambda a, b, m: sh_colors((a, b), m, centre, degree, backend), [dc, rest, means], [cot])
+    assert g_dc.shape == dc.shape and g_rest.shape == rest.shape
+    for got, want in [(rgb2, rgb), (g_dc, g_sh[:, :1]), (g_rest, g_sh[:, 1:]), (g_m2, g_m)]:
+        np.testing.assert_array_equal(np.array(got), np.array(want))
+
+
+def test_blocks_of_different_gaussian_counts_are_refused():
+    with pytest.raises(ValueError, match=r"every sh block must have shape \(5, K, 3\)"):
+        mx.eval(sh_colors((mx.zeros((5, 1, 3)), mx.zeros((4, 15, 3))), mx.zeros((5, 3)), (0, 0, 0), 3, "cpu"))
+
+
 def test_a_gaussian_at_the_camera_centre_stays_finite():
     sh, means, centre, _ = problem(n=4)
     means = mx.array(np.tile(np.array(centre, np.float32), (4, 1)))

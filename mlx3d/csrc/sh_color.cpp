@@ -1,10 +1,12 @@
 // View-dependent colour from spherical harmonics as CPU MLX primitives, threaded over Gaussians.
 //
 // rgb (N,3) = max(0.5 + Σ_k Y_k(normalise(means - centre)) sh[:, k, :], 0) for the first
-// (degree+1)² of the K coefficients (the math, shared with Metal: sh_math.h). The backward
-// primitive gives dL/dsh (N,K,3) (zero past the degree) and dL/dmeans (N,3); the centre gets a
-// zero gradient. Every Gaussian is computed by one thread from its own inputs only, so results
-// are bitwise identical for any thread count.
+// (degree+1)² of the K coefficients (the math, shared with Metal: sh_math.h). The coefficients come
+// as one (N,K,3) array or as two blocks (N,K0,3), (N,K1,3) with K = K0 + K1 (a model's sh_dc and
+// sh_rest, read in place instead of concatenated). The backward primitive gives dL/d(each block)
+// (zero past the degree) and dL/dmeans (N,3); the centre gets a zero gradient. Every Gaussian is
+// computed by one thread from its own inputs only, so results are bitwise identical for any thread
+// count, and for one array or two blocks.
 #include <nanobind/nanobind.h>
 #include <nanobind/stl/vector.h>
 
@@ -32,26 +34,42 @@ namespace {
 constexpr int kBlock = 4096;  // at least this many Gaussians per thread
 
 struct ShInputs {
-  const float* sh;      // (N, K, 3)
-  const float* means;   // (N, 3)
-  const float* centre;  // (3,)
+  const float* block[2];  // (N, K0, 3) and (N, K1, 3); block[1] unused when K1 = 0
+  int kb[2];              // K0, K1
+  const float* means;     // (N, 3)
+  const float* centre;    // (3,)
   int64_t n;
-  int k;
+  int k;                  // K0 + K1
   int degree;
 };
 
-ShInputs sh_inputs(const std::vector<mx::array>& inputs, int degree) {
-  return {inputs[0].data<float>(), inputs[1].data<float>(), inputs[2].data<float>(), inputs[0].shape(0),
-          inputs[0].shape(1), degree};
+// inputs: the 1 or 2 coefficient blocks, means, centre (then anything else, unread).
+ShInputs sh_inputs(const std::vector<mx::array>& inputs, int blocks, int degree) {
+  ShInputs in{};
+  for (int b = 0; b < blocks; ++b) {
+    in.block[b] = inputs[b].data<float>();
+    in.kb[b] = inputs[b].shape(1);
+  }
+  in.means = inputs[blocks].data<float>();
+  in.centre = inputs[blocks + 1].data<float>();
+  in.n = inputs[0].shape(0);
+  in.k = in.kb[0] + in.kb[1];
+  in.degree = degree;
+  return in;
+}
+
+// The 3 floats of coefficient k of Gaussian i (k < K) in a layout of blocks `kb` over `block`.
+template <class T>
+inline T* coefficient(T* const block[2], const int kb[2], int64_t i, int k) {
+  return k < kb[0] ? block[0] + (i * kb[0] + k) * 3 : block[1] + (i * kb[1] + k - kb[0]) * 3;
 }
 
 // Unclamped colour of Gaussian i seen along the basis b.
 inline void colour_of(const ShInputs& in, int64_t i, const ShBasis& b, float* c) {
-  const float* s = in.sh + i * in.k * 3;
   const int bases = sh_num_bases(in.degree);
   for (int ch = 0; ch < 3; ++ch) {
-    float acc = b.y[0] * s[ch];
-    for (int k = 1; k < bases; ++k) acc = acc + b.y[k] * s[3 * k + ch];
+    float acc = b.y[0] * coefficient(in.block, in.kb, i, 0)[ch];
+    for (int k = 1; k < bases; ++k) acc = acc + b.y[k] * coefficient(in.block, in.kb, i, k)[ch];
     c[ch] = acc + 0.5f;
   }
 }
@@ -73,23 +91,27 @@ void run_forward(ShInputs in, int num_threads, float* rgb) {
   });
 }
 
-void run_backward(ShInputs in, const float* cot, int num_threads, float* d_sh, float* d_means) {
+// d_block: dL/d(each block), laid out as the inputs.
+void run_backward(ShInputs in, const float* cot, int num_threads, float* const d_block[2], float* d_means) {
   const int bases = sh_num_bases(in.degree);
-  parallel_ranges(in.n, num_threads, kBlock, [in, cot, d_sh, d_means, bases](int64_t lo, int64_t hi) {
+  float* d0 = d_block[0];
+  float* d1 = d_block[1];
+  parallel_ranges(in.n, num_threads, kBlock, [in, cot, d0, d1, d_means, bases](int64_t lo, int64_t hi) {
+    float* const d[2] = {d0, d1};
     for (int64_t i = lo; i < hi; ++i) {
       const ShDir u = direction_of(in, i);
       const ShBasis b = sh_basis(in.degree, u.x, u.y, u.z);
       float c[3], g[3];
       colour_of(in, i, b, c);
       for (int ch = 0; ch < 3; ++ch) g[ch] = c[ch] > 0.0f ? cot[3 * i + ch] : 0.0f;
-      const float* s = in.sh + i * in.k * 3;
-      float* ds = d_sh + i * in.k * 3;
       float gx = 0.0f, gy = 0.0f, gz = 0.0f;
       for (int k = 0; k < in.k; ++k) {
+        const float* s = coefficient(in.block, in.kb, i, k);
+        float* ds = coefficient(d, in.kb, i, k);
         float along = 0.0f;  // Σ_c g_c sh[k][c]
         for (int ch = 0; ch < 3; ++ch) {
-          ds[3 * k + ch] = k < bases ? g[ch] * b.y[k] : 0.0f;
-          along = along + g[ch] * s[3 * k + ch];
+          ds[ch] = k < bases ? g[ch] * b.y[k] : 0.0f;
+          along = along + g[ch] * s[ch];
         }
         if (k > 0 && k < bases) {
           gx = gx + along * b.dx[k];
@@ -97,40 +119,44 @@ void run_backward(ShInputs in, const float* cot, int num_threads, float* d_sh, f
           gz = gz + along * b.dz[k];
         }
       }
-      const ShVec3 d = sh_direction_vjp(u, gx, gy, gz);
-      d_means[3 * i] = d.x;
-      d_means[3 * i + 1] = d.y;
-      d_means[3 * i + 2] = d.z;
+      const ShVec3 dm = sh_direction_vjp(u, gx, gy, gz);
+      d_means[3 * i] = dm.x;
+      d_means[3 * i + 1] = dm.y;
+      d_means[3 * i + 2] = dm.z;
     }
   });
 }
 
 class ShColorBase : public CpuPrimitive {
  public:
-  ShColorBase(mx::Stream stream, int degree, int num_threads)
-      : CpuPrimitive(stream, "Apple GPUs use the MLX reference, mlx3d.splatting.sh.eval_sh"), degree_(degree), num_threads_(num_threads) {}
+  ShColorBase(mx::Stream stream, int blocks, int degree, int num_threads)
+      : CpuPrimitive(stream, "Apple GPUs use the MLX reference, mlx3d.splatting.sh.eval_sh"),
+        blocks_(blocks), degree_(degree), num_threads_(num_threads) {}
 
   bool is_equivalent(const mx::Primitive& other) const override {
     const auto* o = dynamic_cast<const ShColorBase*>(&other);
-    return o && std::string(o->name()) == name() && o->degree_ == degree_ && o->num_threads_ == num_threads_;
+    return o && std::string(o->name()) == name() && o->blocks_ == blocks_ && o->degree_ == degree_ && o->num_threads_ == num_threads_;
   }
 
  protected:
-  int degree_, num_threads_;
+  int blocks_, degree_, num_threads_;
 };
 
 class ShColorBackward : public ShColorBase {
  public:
   using ShColorBase::ShColorBase;
 
-  // inputs: sh, means, centre, dL/drgb (N,3); outputs: dL/dsh, dL/dmeans
+  // inputs: the coefficient blocks, means, centre, dL/drgb (N,3); outputs: dL/d(each block), dL/dmeans
   void eval_cpu(const std::vector<mx::array>& inputs, std::vector<mx::array>& outputs) override {
     auto& encoder = prepare_outputs(*this, inputs, outputs);
-    ShInputs in = sh_inputs(inputs, degree_);
-    const float* cot = inputs[3].data<float>();
-    float* d_sh = outputs[0].data<float>();
-    float* d_means = outputs[1].data<float>();
-    encoder.dispatch([in, cot, d_sh, d_means, threads = num_threads_]() { run_backward(in, cot, threads, d_sh, d_means); });
+    ShInputs in = sh_inputs(inputs, blocks_, degree_);
+    const float* cot = inputs[blocks_ + 2].data<float>();
+    float* d_block[2] = {outputs[0].data<float>(), blocks_ > 1 ? outputs[1].data<float>() : nullptr};
+    float* d_means = outputs[blocks_].data<float>();
+    encoder.dispatch([in, cot, d0 = d_block[0], d1 = d_block[1], d_means, threads = num_threads_]() {
+      float* const d[2] = {d0, d1};
+      run_backward(in, cot, threads, d, d_means);
+    });
   }
 
   std::vector<mx::array> vjp(const std::vector<mx::array>&, const std::vector<mx::array>&, const std::vector<int>&,
@@ -139,7 +165,9 @@ class ShColorBackward : public ShColorBase {
   }
 
   std::vector<mx::Shape> output_shapes(const std::vector<mx::array>& inputs) override {
-    return {inputs[0].shape(), inputs[1].shape()};
+    std::vector<mx::Shape> shapes;
+    for (int b = 0; b <= blocks_; ++b) shapes.push_back(inputs[b].shape());  // the blocks, then means
+    return shapes;
   }
 
   const char* name() const override { return "ShColorBackward"; }
@@ -149,9 +177,10 @@ class ShColorForward : public ShColorBase {
  public:
   using ShColorBase::ShColorBase;
 
+  // inputs: the coefficient blocks, means, centre
   void eval_cpu(const std::vector<mx::array>& inputs, std::vector<mx::array>& outputs) override {
     auto& encoder = prepare_outputs(*this, inputs, outputs);
-    ShInputs in = sh_inputs(inputs, degree_);
+    ShInputs in = sh_inputs(inputs, blocks_, degree_);
     float* rgb = outputs[0].data<float>();
     encoder.dispatch([in, rgb, threads = num_threads_]() { run_forward(in, threads, rgb); });
   }
@@ -159,17 +188,21 @@ class ShColorForward : public ShColorBase {
   std::vector<mx::array> vjp(const std::vector<mx::array>& primals, const std::vector<mx::array>& cotangents,
                              const std::vector<int>& argnums, const std::vector<mx::array>&) override {
     auto s = stream();
+    const int centre = blocks_ + 1;  // primals: blocks, means, centre
     bool need = false;
-    for (int a : argnums) need |= a < 2;
+    for (int a : argnums) need |= a < centre;
     std::vector<mx::array> grads;
     if (need) {
       auto cot = mx::contiguous(mx::astype(cotangents[0], mx::float32, s), false, s);
-      grads = mx::array::make_arrays({primals[0].shape(), primals[1].shape()}, {mx::float32, mx::float32},
-                                     std::make_shared<ShColorBackward>(s, degree_, num_threads_),
-                                     {primals[0], primals[1], primals[2], cot});
+      std::vector<mx::array> inputs(primals.begin(), primals.end());
+      inputs.push_back(cot);
+      std::vector<mx::Shape> shapes;
+      for (int b = 0; b < centre; ++b) shapes.push_back(primals[b].shape());
+      grads = mx::array::make_arrays(shapes, std::vector<mx::Dtype>(shapes.size(), mx::float32),
+                                     std::make_shared<ShColorBackward>(s, blocks_, degree_, num_threads_), inputs);
     }
     std::vector<mx::array> result;
-    for (int a : argnums) result.push_back(a < 2 ? grads[a] : mx::zeros_like(primals[a], s));
+    for (int a : argnums) result.push_back(a < centre ? grads[a] : mx::zeros_like(primals[a], s));
     return result;
   }
 
@@ -185,29 +218,40 @@ void check(bool ok, const std::string& msg) {
 }
 
 // The op: validates shapes/dtypes, makes the inputs row-contiguous, returns rgb (N,3), lazily evaluated.
-mx::array sh_colors(const mx::array& sh, const mx::array& means, const mx::array& centre, int degree, int num_threads) {
+// sh: the coefficients as [(N,K,3)] or [(N,K0,3), (N,K1,3)] (K = K0 + K1, K0 >= 1).
+mx::array sh_colors(const std::vector<mx::array>& sh, const mx::array& means, const mx::array& centre, int degree, int num_threads) {
   check(degree >= 0 && degree <= 3, "degree must be 0..3, got " + std::to_string(degree));
   check(num_threads >= 0, "num_threads must be >= 0 (0 = all cores), got " + std::to_string(num_threads));
-  check(sh.ndim() == 3 && sh.shape(2) == 3, "sh must have shape (N, K, 3), got " + shape_str(sh));
-  const int n = sh.shape(0);
-  check(sh.shape(1) >= sh_num_bases(degree), "degree " + std::to_string(degree) + " needs K >= " +
-                                                   std::to_string(sh_num_bases(degree)) + ", got sh " + shape_str(sh));
+  check(sh.size() == 1 || sh.size() == 2, "sh must be one (N, K, 3) array or two blocks, got " + std::to_string(sh.size()) + " arrays");
+  check(sh[0].ndim() == 3 && sh[0].shape(2) == 3 && sh[0].shape(1) >= 1, "sh must have shape (N, K, 3) with K >= 1, got " + shape_str(sh[0]));
+  const int n = sh[0].shape(0);
+  int k = 0;
+  for (const auto& b : sh) {
+    check(b.ndim() == 3 && b.shape(0) == n && b.shape(2) == 3,
+          "every sh block must have shape (" + std::to_string(n) + ", K, 3), got " + shape_str(b));
+    k += b.shape(1);
+  }
+  check(k >= sh_num_bases(degree), "degree " + std::to_string(degree) + " needs K >= " + std::to_string(sh_num_bases(degree)) +
+                                       " coefficients, got " + std::to_string(k));
   check(means.ndim() == 2 && means.shape(0) == n && means.shape(1) == 3,
         "means must have shape (N, 3) = (" + std::to_string(n) + ", 3), got " + shape_str(means));
   check(centre.ndim() == 1 && centre.shape(0) == 3, "centre must have shape (3,), got " + shape_str(centre));
-  for (const auto* a : {&sh, &means, &centre}) check(a->dtype() == mx::float32, "inputs must be float32 (the Python wrapper casts them)");
+  check(means.dtype() == mx::float32 && centre.dtype() == mx::float32, "inputs must be float32 (the Python wrapper casts them)");
+  for (const auto& b : sh) check(b.dtype() == mx::float32, "inputs must be float32 (the Python wrapper casts them)");
   auto s = mx::default_stream(mx::Device::cpu);
   std::vector<mx::array> inputs;
-  for (const auto* a : {&sh, &means, &centre}) inputs.push_back(mx::contiguous(*a, false, s));
-  return mx::array({n, 3}, mx::float32, std::make_shared<ShColorForward>(s, degree, num_threads), inputs);
+  for (const auto& b : sh) inputs.push_back(mx::contiguous(b, false, s));
+  for (const auto* a : {&means, &centre}) inputs.push_back(mx::contiguous(*a, false, s));
+  return mx::array({n, 3}, mx::float32, std::make_shared<ShColorForward>(s, static_cast<int>(sh.size()), degree, num_threads), inputs);
 }
 
 }  // namespace
 
 void bind_sh_color(nb::module_& m) {
   m.def("sh_colors", &sh_colors, "sh"_a, "means"_a, "centre"_a, "degree"_a, "num_threads"_a = 0,
-        "max(colour, 0) of float32 SH coefficients sh (N,K,3) seen from centre (3,) at means (N,3), up to\n"
-        "degree (MLX primitive, CPU, threaded; differentiable w.r.t. sh and means). Use\n"
+        "max(colour, 0) of float32 SH coefficients seen from centre (3,) at means (N,3), up to degree;\n"
+        "sh: [(N,K,3)] or two blocks [(N,K0,3), (N,K1,3)] read as their concatenation (MLX primitive,\n"
+        "CPU, threaded; differentiable w.r.t. the blocks and means). Use\n"
         "mlx3d.render.sh_color.sh_colors, which dispatches per backend and casts its inputs.");
 }
 

@@ -33,7 +33,7 @@ from . import geometry_channels
 from .binning import TILE_SIZE, Bins, bin_tiles
 from .projection import project_ewa, project_ut
 from .rasterize import BACKENDS, CHUNK_SIZE, composite, composite_features, resolve_backend
-from .sh_color import sh_colors
+from .sh_color import num_coefficients, sh_colors
 from .surface import Surface, composite_surface, surface_mode, surface_stages
 
 PROJECTIONS = ("auto", "ewa", "ut")
@@ -122,7 +122,7 @@ def plan_render(
         raise ValueError("pass exactly one of colors=(N,3) or sh=(N,K,3)")
     degree = None
     if sh is not None:
-        degree = min(int(sh_degree), _sh_degree_present(sh.shape[1]))
+        degree = min(int(sh_degree), _sh_degree_present(num_coefficients(sh)))
     variance = bool(render_depth_variance)
     depth = bool(render_depth) or variance
     return RenderPlan(
@@ -194,7 +194,8 @@ def render_gaussians(
     The original mlx3D signature: means (N,3), quats (N,4) w,x,y,z, scales
     (N,3) std-devs, opacities (N,) in [0,1]; colour from ``colors`` (N,3) or
     SH ``sh`` (N,K,3) evaluated toward the camera up to ``sh_degree`` (and at
-    most the degree K holds), clamped at 0 as in 3DGS; background: (3,) or
+    most the degree K holds), clamped at 0 as in 3DGS (``sh`` may also be the
+    pair (sh_dc, sh_rest), which saves concatenating them); background: (3,) or
     None (black); refine_tiles: accepted for compatibility and changes
     nothing (the binning always drops the tiles a Gaussian cannot reach with
     alpha >= 1/255, which leaves the image unchanged); antialias:

@@ -613,7 +613,7 @@ class GaussianModel:
         from ..render import render_gaussians
 
         return render_gaussians(
-            camera, self.means, self.quats, self.scales, self.opacities, sh=self.sh,
+            camera, self.means, self.quats, self.scales, self.opacities, sh=(self.params["sh_dc"], self.params["sh_rest"]),
             sh_degree=self.sh_degree if sh_degree is None else sh_degree, background=background,
             antialias=antialias, projection=projection, render_depth=render_depth, **kwargs,
         )

@@ -298,7 +298,7 @@ class GaussianTrainer:
         r, terms = plan.render, set(plan.losses)
 
         def loss_fn(p, offset, grid):
-            sh = mx.concatenate([p["sh_dc"], p["sh_rest"]], axis=1)
+            sh = (p["sh_dc"], p["sh_rest"])  # read in place by the CPU kernel, no concatenation
             out = render_gaussians(
                 camera, p["means"], p["quats"], mx.exp(p["scales"]), mx.sigmoid(p["opacities"]), sh=sh, sh_degree=degree,
                 background=bg, antialias=r.antialias, projection=r.projection, means2d_offset=offset, render_depth=r.depth,
