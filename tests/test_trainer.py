@@ -104,6 +104,30 @@ def test_fused_adam_matches_the_mlx_expression_for_any_thread_count():
             np.testing.assert_array_equal(other[key], one[key], err_msg=key)
 
 
+@pytest.mark.parametrize("backend", ["cpu", "reference"])
+def test_adam_reports_a_non_finite_gradient_and_restores_its_state(backend):
+    # one bad entry anywhere (a big array split over threads, an unupdated name too) clears the flag,
+    # agreeing with numpy's isfinite; restore() puts the moments and the step count back
+    rng = np.random.default_rng(8)
+    shapes = {"means": (200_003, 3), "opacities": (200_003,), "frozen": (7,)}
+    params = {k: mx.array(rng.normal(size=s).astype(np.float32)) for k, s in shapes.items()}
+    opt = Adam({"means": 1e-3, "opacities": 5e-2}, backend=backend)
+    good = {k: mx.array(rng.normal(size=s).astype(np.float32)) for k, s in shapes.items()}
+    params, ok = opt.update_checked(params, good)
+    assert bool(ok)
+    saved = opt.checkpoint()
+    m_before = {k: np.array(v) for k, v in opt.m.items()}
+    for name, where, value in [("means", (199_999, 2), np.nan), ("means", (3, 0), np.inf), ("opacities", (150_000,), -np.inf), ("frozen", (6,), np.nan)]:
+        bad = {k: np.array(v) for k, v in good.items()}
+        bad[name][where] = value
+        _, ok = opt.update_checked(params, {k: mx.array(v) for k, v in bad.items()})
+        assert bool(ok) == all(np.isfinite(v).all() for v in bad.values()) == False  # noqa: E712
+        opt.restore(saved)
+        assert opt.step_count == 1
+        for k, v in opt.m.items():
+            np.testing.assert_array_equal(np.array(v), m_before[k])
+
+
 # ------------------------------------------------------------------ density control
 def crafted_params():
     """Six Gaussians: small/large x high/low gradient, one transparent, one huge."""
@@ -211,14 +235,18 @@ def test_nan_guard_keeps_the_last_good_parameters():
     before = {k: np.array(v) for k, v in trainer.model.params.items()}
     bad = targets[1].copy()
     bad[0, 0, 0] = np.nan
+    moments = {k: np.array(v) for k, v in trainer.optimizer.v.items()}
     with pytest.raises(TrainingError, match="not finite"):
         trainer.step(cams[1], bad)
     for k, v in trainer.model.params.items():
         np.testing.assert_array_equal(np.array(v), before[k])
+    for k, v in trainer.optimizer.v.items():  # and Adam's state, so the next good step continues from there
+        np.testing.assert_array_equal(np.array(v), moments[k])
+    assert trainer.optimizer.step_count == 1 and trainer.step(cams[2], targets[2])["step"] == 2
 
 
 def test_all_finite_agrees_with_numpy_isfinite():
-    from mlx3d.training.trainer import all_finite
+    from mlx3d.training.adam import all_finite
 
     rng = np.random.default_rng(5)
     base = [rng.normal(size=(1000, 3)).astype(np.float32), rng.normal(size=(200, 15, 3)).astype(np.float32)]

@@ -4,11 +4,15 @@
 //
 //   m' = b1 m + (1 - b1) g;  v' = b2 v + (1 - b2) g²;  p' = p - lr (m' / c1) / (sqrt(v' / c2) + eps)
 //
-// with the bias corrections c1 = 1 - b1^t, c2 = 1 - b2^t given by the caller.
+// with the bias corrections c1 = 1 - b1^t, c2 = 1 - b2^t given by the caller. A fourth output says
+// whether every gradient entry is finite, found in the same pass (the trainer keeps the old
+// parameters when one is not, instead of making another pass over all gradients first).
 #include <nanobind/nanobind.h>
 #include <nanobind/stl/vector.h>
 
+#include <atomic>
 #include <cmath>
+#include <cstring>
 #include <cstdint>
 #include <memory>
 #include <stdexcept>
@@ -34,18 +38,26 @@ struct AdamScalars {
   float lr, b1, one_minus_b1, b2, one_minus_b2, eps, c1, c2;
 };
 
-void run_adam(const float* p, const float* g, const float* m, const float* v, float* p_out, float* m_out, float* v_out,
+// Returns true when every g[i] is finite.
+bool run_adam(const float* p, const float* g, const float* m, const float* v, float* p_out, float* m_out, float* v_out,
               int64_t n, AdamScalars s, int num_threads) {
-  parallel_ranges(n, num_threads, kBlock, [=](int64_t lo, int64_t hi) {
+  std::atomic<bool> finite(true);
+  parallel_ranges(n, num_threads, kBlock, [=, &finite](int64_t lo, int64_t hi) {
+    uint32_t exponent_ones = 0;  // non-zero when some g[i] has an all-ones exponent (inf or NaN)
     for (int64_t i = lo; i < hi; ++i) {
       const float gi = g[i];
+      uint32_t bits;
+      std::memcpy(&bits, &gi, 4);
+      exponent_ones |= uint32_t((bits & 0x7f800000u) == 0x7f800000u);
       const float mi = s.b1 * m[i] + s.one_minus_b1 * gi;
       const float vi = s.b2 * v[i] + s.one_minus_b2 * (gi * gi);
       m_out[i] = mi;
       v_out[i] = vi;
       p_out[i] = p[i] - (s.lr * (mi / s.c1)) / (std::sqrt(vi / s.c2) + s.eps);
     }
+    if (exponent_ones) finite.store(false, std::memory_order_relaxed);
   });
+  return finite.load();
 }
 
 class AdamStep : public CpuPrimitive {
@@ -57,8 +69,9 @@ class AdamStep : public CpuPrimitive {
     auto& encoder = prepare_outputs(*this, inputs, outputs);
     const float *p = inputs[0].data<float>(), *g = inputs[1].data<float>(), *m = inputs[2].data<float>(), *v = inputs[3].data<float>();
     float *po = outputs[0].data<float>(), *mo = outputs[1].data<float>(), *vo = outputs[2].data<float>();
+    bool* finite = outputs[3].data<bool>();
     const int64_t n = inputs[0].size();
-    encoder.dispatch([=, s = s_, threads = num_threads_]() { run_adam(p, g, m, v, po, mo, vo, n, s, threads); });
+    encoder.dispatch([=, s = s_, threads = num_threads_]() { *finite = run_adam(p, g, m, v, po, mo, vo, n, s, threads); });
   }
 
   std::vector<mx::array> vjp(const std::vector<mx::array>&, const std::vector<mx::array>&, const std::vector<int>&,
@@ -71,7 +84,7 @@ class AdamStep : public CpuPrimitive {
   }
 
   std::vector<mx::Shape> output_shapes(const std::vector<mx::array>& inputs) override {
-    return {inputs[0].shape(), inputs[0].shape(), inputs[0].shape()};
+    return {inputs[0].shape(), inputs[0].shape(), inputs[0].shape(), {}};
   }
 
   const char* name() const override { return "AdamStep"; }
@@ -101,7 +114,7 @@ std::vector<mx::array> adam_step(const mx::array& p, const mx::array& g, const m
   auto st = mx::default_stream(mx::Device::cpu);
   std::vector<mx::array> inputs;
   for (const auto* a : {&p, &g, &m, &v}) inputs.push_back(mx::contiguous(*a, false, st));
-  return mx::array::make_arrays({p.shape(), p.shape(), p.shape()}, {mx::float32, mx::float32, mx::float32},
+  return mx::array::make_arrays({p.shape(), p.shape(), p.shape(), {}}, {mx::float32, mx::float32, mx::float32, mx::bool_},
                                 std::make_shared<AdamStep>(st, s, num_threads), inputs);
 }
 
@@ -110,7 +123,8 @@ std::vector<mx::array> adam_step(const mx::array& p, const mx::array& g, const m
 void bind_adam(nb::module_& m) {
   m.def("adam_step", &adam_step, "p"_a, "g"_a, "m"_a, "v"_a, "lr"_a, "b1"_a, "b2"_a, "eps"_a, "c1"_a, "c2"_a,
         "num_threads"_a = 0,
-        "One Adam step on float32 arrays of one shape: returns [p', m', v'] (MLX primitive, CPU, threaded).\n"
+        "One Adam step on float32 arrays of one shape: returns [p', m', v', finite] (MLX primitive, CPU,\n"
+        "threaded); finite: a bool scalar, True when every entry of g is finite.\n"
         "c1, c2: the bias corrections 1 - b1^t, 1 - b2^t. Used by mlx3d.training.adam.Adam.");
 }
 

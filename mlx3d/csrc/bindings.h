@@ -13,5 +13,6 @@ void bind_sh_color(nanobind::module_& m);
 void bind_adam(nanobind::module_& m);
 void bind_projection(nanobind::module_& m);
 void bind_photometric(nanobind::module_& m);
+void bind_activation(nanobind::module_& m);
 
 }  // namespace mlx3d

@@ -102,7 +102,7 @@ void run_loss(const float* x, const float* y, const float* w, Image im, float la
   else
     wsum = pixels;
   const double inv_w = 1.0 / std::max(wsum, kWeightFloor);
-  std::vector<float> prod(n), tmp(n), mu_x(n), mu_y(n), e_xx(n), e_yy(n), e_xy(n);
+  ScratchFloats prod(n), tmp(n), mu_x(n), mu_y(n), e_xx(n), e_yy(n), e_xy(n);  // each fully written before it is read
   auto fill = [&](auto f) {
     float* out = prod.data();
     parallel_ranges(int64_t(n), num_threads, per_thread, [=](int64_t lo, int64_t hi) {
@@ -121,7 +121,7 @@ void run_loss(const float* x, const float* y, const float* w, Image im, float la
   std::vector<double> row_l1(im.h, 0.0), row_ssim(im.h, 0.0);
   float* d_mu = prod.data();
   float* d_xx = tmp.data();
-  std::vector<float> d_xy_buf(n);
+  ScratchFloats d_xy_buf(n);
   float* d_xy = d_xy_buf.data();
   const float inv_c = 1.0f / im.c;
   parallel_ranges(im.h, num_threads, kRows, [=, mu_x = mu_x.data(), mu_y = mu_y.data(), e_xx = e_xx.data(), e_yy = e_yy.data(),

@@ -55,6 +55,17 @@ void parallel_ranges(int64_t n, int num_threads, int64_t min_per_thread, const F
   for (auto& th : pool) th.join();
 }
 
+// Uninitialised float scratch from MLX's buffer cache, returned to it on scope exit: reused across
+// evaluations, so a kernel's temporaries cost neither fresh pages (faults) nor zeroing per call.
+class ScratchFloats {
+ public:
+  explicit ScratchFloats(size_t n) : data_(mlx::core::allocator::malloc(std::max<size_t>(n, 1) * sizeof(float))) {}
+  float* data() { return static_cast<float*>(data_.buffer().raw_ptr()); }
+
+ private:
+  mlx::core::allocator::Data data_;
+};
+
 // Checks that every input is row-contiguous (the ops make them so before building a primitive, and the
 // kernels index them as plain arrays), allocates the outputs and registers every array with the primitive's
 // CPU command encoder, which it returns.

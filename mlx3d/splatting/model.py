@@ -162,7 +162,9 @@ class GaussianModel:
     @property
     def scales(self) -> mx.array:
         """(N,3) standard deviations (exp of the raw log scales)."""
-        return mx.exp(self.params["scales"])
+        from ..render import activation
+
+        return activation.exp(self.params["scales"])
 
     @property
     def quats(self) -> mx.array:
@@ -173,7 +175,9 @@ class GaussianModel:
     @property
     def opacities(self) -> mx.array:
         """(N,) opacities in (0, 1) (sigmoid of the logits)."""
-        return mx.sigmoid(self.params["opacities"])
+        from ..render import activation
+
+        return activation.sigmoid(self.params["opacities"])
 
     @property
     def scales_act(self) -> mx.array:

@@ -12,6 +12,16 @@ import mlx.core as mx
 import numpy as np
 
 
+def all_finite(arrays) -> mx.array:
+    """A bool scalar: True when no element of any array is NaN or infinite.
+
+    x * 0 is exactly 0 where x is finite and NaN where x is NaN or infinite, so the sum of
+    those products is 0 exactly when everything is finite (two passes per array; mx.isfinite
+    and mx.all take several). Lazy: evaluate it with the arrays.
+    """
+    return mx.sum(mx.stack([mx.sum(a * 0) for a in arrays])) == 0
+
+
 class Adam:
     """Adam (Kingma & Ba) over a dict of (N, ...) arrays, learning rate per name.
 
@@ -34,13 +44,24 @@ class Adam:
 
     def update(self, params: dict, grads: dict) -> dict:
         """New params after one step (moments are created on first use)."""
+        return self.update_checked(params, grads)[0]
+
+    def update_checked(self, params: dict, grads: dict) -> tuple[dict, mx.array]:
+        """``update``, and a lazy bool scalar: True when every entry of every gradient is finite.
+
+        The CPU kernel finds it in its update pass. When it is False, the new
+        parameters and moments are garbage: put back the state saved by
+        ``checkpoint()`` with ``restore``.
+        """
         self.step_count += 1
         c1 = 1.0 - self.b1**self.step_count
         c2 = 1.0 - self.b2**self.step_count
         out = dict(params)
+        finite, unchecked = [], []
         for name, g in grads.items():
             lr = self.lrs.get(name, 0.0)
             if not lr:
+                unchecked.append(g)
                 continue
             m = self.m.get(name, mx.zeros_like(g))
             v = self.v.get(name, mx.zeros_like(g))
@@ -49,13 +70,26 @@ class Adam:
 
                 from ..render.raster_cpu import get_num_threads
 
-                out[name], m, v = native.core().adam_step(params[name], g, m, v, lr, self.b1, self.b2, self.eps, c1, c2, get_num_threads())
+                out[name], m, v, ok = native.core().adam_step(params[name], g, m, v, lr, self.b1, self.b2, self.eps, c1, c2, get_num_threads())
+                finite.append(ok)
             else:
                 m = self.b1 * m + (1 - self.b1) * g
                 v = self.b2 * v + (1 - self.b2) * g * g
                 out[name] = params[name] - lr * (m / c1) / (mx.sqrt(v / c2) + self.eps)
+                unchecked.append(g)
             self.m[name], self.v[name] = m, v
-        return out
+        if unchecked:
+            finite.append(all_finite(unchecked))
+        return out, mx.all(mx.stack(finite)) if finite else mx.array(True)
+
+    def checkpoint(self) -> tuple:
+        """The moments and step count as they are now (references, no copies), for ``restore``."""
+        return dict(self.m), dict(self.v), self.step_count
+
+    def restore(self, saved: tuple) -> None:
+        """Undo the updates made since ``checkpoint()`` returned ``saved``."""
+        m, v, self.step_count = saved
+        self.m, self.v = dict(m), dict(v)
 
     def select(self, keep: np.ndarray) -> None:
         """Keep moment rows ``keep`` (indices) for every parameter."""
