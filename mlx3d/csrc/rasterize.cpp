@@ -1155,7 +1155,34 @@ inline void prefetch_for_write(const float* p) {
 // Per-Gaussian ranges of at least this many Gaussians per thread for the output passes.
 constexpr int64_t kMinGaussiansPerThread = 4096;
 
+// Adds the slots of entries [lo0, hi1) (slots[(e - lo0) * K + field]) to acc[g * K + field] of
+// their Gaussians g, in flatten_ids order. Bound by memory latency (the Gaussians come in random
+// order), so the next Gaussians' sums are prefetched.
+void add_slots(const Inputs& in, int64_t N, int K, int64_t lo0, int64_t hi1, const float* slots, float* acc) {
+  constexpr int64_t kAhead = 16;
+  for (int64_t e = lo0; e < hi1; ++e) {
+    if (e + kAhead < hi1) {
+      const int64_t ga = in.ids[e + kAhead];
+      if (ga >= 0 && ga < N) prefetch_for_write(acc + ga * K);
+    }
+    const int64_t g = in.ids[e];
+    if (g < 0 || g >= N) continue;
+    const float* v = slots + (e - lo0) * K;
+    float* a = acc + g * K;
+    for (int j = 0; j < K; ++j) a[j] += v[j];
+  }
+}
+
 // Adds every tile entry's gradient slots to acc[g * K + field] of its Gaussian g, in flatten_ids order.
+//
+// Tiles are taken in chunks of consecutive tiles holding at most ~4M slot floats (or one tile),
+// each chunk's slots in one of two buffers. A chunk's slots are added to the per-Gaussian sums by
+// thread 0 alone, in order, so the sums do not depend on the thread count. Summing one thread
+// measured faster than splitting it among threads (README, "A training step at real-capture
+// sizes"), so instead it overlaps the other threads' tiles: thread 0 sums chunk c as soon as all of
+// its tiles are done, while the others go on with chunk c + 1 (a tile of chunk c + 2 waits until
+// chunk c is summed, whose buffer it reuses). The slot buffers are left uninitialised: each tile
+// zeroes its own slots on the thread that fills them.
 void accumulate_entries(Inputs in, const Geometry& geo, int num_threads, const BackwardIn& bw, float* acc) {
   const int C = geo.channels;
   const int K = kGradFixed + C;
@@ -1168,45 +1195,63 @@ void accumulate_entries(Inputs in, const Geometry& geo, int num_threads, const B
   in.splats = splats.data();
   std::vector<Scratch> scratch(threads);
   const BackwardTileFn backward_tile = pick_backward(C);
-  // Chunks of consecutive tiles holding at most ~4M slot floats (or one tile). The slot buffer is
-  // left uninitialised: each tile zeroes its own slots on the thread that fills them.
   const int64_t budget = std::max<int64_t>(1, (int64_t(1) << 22) / K);
   std::vector<int> chunk_start{0};  // first tile of each chunk, then `tiles`
+  std::vector<int> chunk_of(tiles);
   int64_t largest = 0;
   while (chunk_start.back() < tiles) {
     const int t0 = chunk_start.back();
     int t1 = t0 + 1;
     while (t1 < tiles && ranges[t1 + 1] - ranges[t0] <= budget) ++t1;
     largest = std::max(largest, ranges[t1] - ranges[t0]);
+    for (int t = t0; t < t1; ++t) chunk_of[t] = static_cast<int>(chunk_start.size()) - 1;
     chunk_start.push_back(t1);
   }
-  std::unique_ptr<float[]> entry_grad(new float[static_cast<size_t>(largest) * K]);
-  float* slots = entry_grad.get();
-  for (size_t c = 0; c + 1 < chunk_start.size(); ++c) {
-    const int t0 = chunk_start[c], t1 = chunk_start[c + 1];
-    const int64_t lo0 = ranges[t0], hi1 = ranges[t1];
-    parallel_tiles(t0, t1, threads, scratch, [&](int t, Scratch& s) {
-      float* own = slots + (ranges[t] - lo0) * K;
+  const int chunks = static_cast<int>(chunk_start.size()) - 1;
+  const size_t buffer_floats = static_cast<size_t>(largest) * K;
+  std::unique_ptr<float[]> buffers(new float[(chunks > 1 ? 2 : 1) * buffer_floats]);
+  auto buffer_of = [&](int c) { return buffers.get() + static_cast<size_t>(c % 2) * buffer_floats; };
+
+  std::atomic<int> next_tile(0);
+  std::atomic<int> summed(0);  // chunks [0, summed) are in acc
+  std::unique_ptr<std::atomic<int>[]> tiles_left(new std::atomic<int>[chunks]);
+  for (int c = 0; c < chunks; ++c) tiles_left[c].store(chunk_start[c + 1] - chunk_start[c]);
+  // Thread 0: sums every chunk whose tiles are all done, in order; returns whether it summed one.
+  auto sum_ready = [&]() {
+    bool any = false;
+    for (int c = summed.load(std::memory_order_relaxed); c < chunks && tiles_left[c].load(std::memory_order_acquire) == 0; ++c) {
+      add_slots(in, N, K, ranges[chunk_start[c]], ranges[chunk_start[c + 1]], buffer_of(c), acc);
+      summed.store(c + 1, std::memory_order_release);
+      any = true;
+    }
+    return any;
+  };
+  auto worker = [&](int id) {
+    Scratch& s = scratch[id];
+    for (int t = next_tile.fetch_add(1); t < tiles; t = next_tile.fetch_add(1)) {
+      const int c = chunk_of[t];
+      while (summed.load(std::memory_order_acquire) < c - 1) {  // chunk c - 2 still holds the buffer
+        if (id == 0) {
+          if (!sum_ready()) std::this_thread::yield();
+        } else {
+          std::this_thread::yield();
+        }
+      }
+      float* own = buffer_of(c) + (ranges[t] - ranges[chunk_start[c]]) * K;
       std::fill(own, own + (ranges[t + 1] - ranges[t]) * K, 0.0f);
       backward_tile(in, geo, t, s, bw, own);
-    });
-    // The chunk's slots into the per-Gaussian sums, on one thread. This pass is bound by memory
-    // latency (the Gaussians come in random order), so the next Gaussians' sums are prefetched.
-    // Splitting it among threads by Gaussian-id range measured slower on two threads than on one
-    // (README, "A training step at real-capture sizes").
-    constexpr int64_t kAhead = 16;
-    for (int64_t e = lo0; e < hi1; ++e) {
-      if (e + kAhead < hi1) {
-        const int64_t ga = in.ids[e + kAhead];
-        if (ga >= 0 && ga < N) prefetch_for_write(acc + ga * K);
-      }
-      const int64_t g = in.ids[e];
-      if (g < 0 || g >= N) continue;
-      const float* v = slots + (e - lo0) * K;
-      float* a = acc + g * K;
-      for (int j = 0; j < K; ++j) a[j] += v[j];
+      tiles_left[c].fetch_sub(1, std::memory_order_acq_rel);
+      if (id == 0) sum_ready();
     }
-  }
+    if (id == 0)
+      while (summed.load(std::memory_order_relaxed) < chunks)
+        if (!sum_ready()) std::this_thread::yield();
+  };
+  std::vector<std::thread> pool;
+  pool.reserve(threads - 1);
+  for (int i = 1; i < threads; ++i) pool.emplace_back(worker, i);
+  worker(0);
+  for (auto& th : pool) th.join();
 }
 
 void run_backward(Inputs in, const Geometry& geo, int num_threads, const BackwardIn& bw, const GradOut& out) {
