@@ -4,11 +4,18 @@
 
 #include <algorithm>
 #include <atomic>
+#include <cstdlib>
+#include <memory>
+#include <new>
 #include <sstream>
 #include <stdexcept>
 #include <string>
 #include <thread>
 #include <vector>
+
+#if defined(__linux__)
+#include <sys/mman.h>
+#endif
 
 #include "mlx/allocator.h"
 #include "mlx/array.h"
@@ -54,6 +61,39 @@ void parallel_ranges(int64_t n, int num_threads, int64_t min_per_thread, const F
   own(int64_t(0), std::min(n, step));
   for (auto& th : pool) th.join();
 }
+
+// An uninitialised array of n T, on 2 MB pages where the OS offers them (Linux transparent huge
+// pages): for per-Gaussian buffers that kernels read and update in random order, where 4 KB pages
+// would miss the TLB on nearly every access. Freed on scope exit.
+template <class T>
+class HugePageArray {
+ public:
+  explicit HugePageArray(size_t n) {
+    constexpr size_t kHuge = size_t(2) << 20;
+    const size_t bytes = std::max<size_t>(n, 1) * sizeof(T);
+    const size_t align = bytes >= kHuge ? kHuge : 64;  // a cache line at least (T may ask for it)
+    static_assert(alignof(T) <= 64, "HugePageArray aligns to 64 bytes");
+    const size_t rounded = (bytes + align - 1) / align * align;
+    void* p = std::aligned_alloc(align, rounded);
+    if (!p) throw std::bad_alloc();
+#if defined(__linux__) && defined(MADV_HUGEPAGE)
+    if (bytes >= kHuge) madvise(p, rounded, MADV_HUGEPAGE);  // advice only: 4 KB pages if refused
+#endif
+    data_.reset(static_cast<T*>(p));
+  }
+  T* data() { return data_.get(); }
+  const T* data() const { return data_.get(); }
+  T& operator[](size_t i) { return data_.get()[i]; }
+  const T& operator[](size_t i) const { return data_.get()[i]; }
+  // Gives up ownership: free the pointer with std::free.
+  T* release() { return data_.release(); }
+
+ private:
+  struct Free {
+    void operator()(T* p) const { std::free(p); }
+  };
+  std::unique_ptr<T, Free> data_;
+};
 
 // Uninitialised float scratch from MLX's buffer cache, returned to it on scope exit: reused across
 // evaluations, so a kernel's temporaries cost neither fresh pages (faults) nor zeroing per call.

@@ -1111,15 +1111,15 @@ void parallel_tiles(int t0, int t1, int threads, std::vector<Scratch>& scratch, 
 }
 
 // The Splat records of all Gaussians (with reach bounds unless culling is off).
-std::vector<Splat> make_splats(const Inputs& in, const Geometry& geo, int threads) {
+HugePageArray<Splat> make_splats(const Inputs& in, const Geometry& geo, int threads) {
   const int64_t n = geo.num_gaussians;
-  std::vector<Splat> splats(static_cast<size_t>(n));
+  HugePageArray<Splat> splats(static_cast<size_t>(n));  // tiles gather them in random order
   // Pixel centres are exact floats (as the bounds assume) up to 2^23.
   const bool cull = culling_enabled() && geo.width <= (1 << 22) && geo.height <= (1 << 22);
   constexpr int64_t kBlock = 4096;
   const int blocks = static_cast<int>((n + kBlock - 1) / kBlock);
   parallel_items(0, blocks, threads, [&](int blk, int) {
-    for (int64_t g = blk * kBlock; g < std::min(n, (blk + 1) * kBlock); ++g) make_splat(in, geo, g, cull, splats[g]);
+    for (int64_t g = blk * kBlock; g < std::min(n, (blk + 1) * kBlock); ++g) make_splat(in, geo, g, cull, splats.data()[g]);
   });
   return splats;
 }
@@ -1129,7 +1129,7 @@ void run_forward(Inputs in, const Geometry& geo, int num_threads, const ForwardO
   in.ranges = ranges.data();
   const int tiles = geo.num_tiles();
   const int threads = resolve_threads(num_threads, tiles);
-  const std::vector<Splat> splats = make_splats(in, geo, threads);
+  const HugePageArray<Splat> splats = make_splats(in, geo, threads);
   in.splats = splats.data();
   std::vector<Scratch> scratch(threads);
   const ForwardTileFn forward_tile = pick_forward(geo.channels, surface);
@@ -1191,7 +1191,7 @@ void accumulate_entries(Inputs in, const Geometry& geo, int num_threads, const B
   const std::vector<int64_t> ranges = sanitise_offsets(in.offsets, geo);
   in.ranges = ranges.data();
   const int threads = resolve_threads(num_threads, tiles);
-  const std::vector<Splat> splats = make_splats(in, geo, threads);
+  const HugePageArray<Splat> splats = make_splats(in, geo, threads);
   in.splats = splats.data();
   std::vector<Scratch> scratch(threads);
   const BackwardTileFn backward_tile = pick_backward(C);
@@ -1261,8 +1261,8 @@ void run_backward(Inputs in, const Geometry& geo, int num_threads, const Backwar
   const int tiles = geo.num_tiles();
   // Per-Gaussian sums, K interleaved fields per Gaussian (one or two cache lines per update), split
   // into the four outputs at the end.
-  std::unique_ptr<float[]> sums(new float[static_cast<size_t>(N) * K]);
-  float* acc = sums.get();
+  HugePageArray<float> sums(static_cast<size_t>(N) * K);  // updated in random Gaussian order
+  float* acc = sums.data();
   parallel_ranges(N, num_threads, kMinGaussiansPerThread, [acc, K](int64_t g0, int64_t g1) {
     std::fill(acc + g0 * K, acc + g1 * K, 0.0f);
   });

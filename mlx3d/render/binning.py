@@ -9,7 +9,8 @@ depend on the thread count). Not differentiable.
 Given ``conics`` and ``opacities``, each axis' half-extent is tightened to the
 box of the ellipse where the Gaussian can reach alpha = 1/255,
 ``dᵀ Σ⁻¹ d ≤ 2 ln(255 o)``, i.e. ``sqrt(2 ln(255 o) Σxx)`` (+1 px for
-rounding), never beyond r. Outside it every pixel would skip the Gaussian
+rounding), never beyond r (computed in the C++ binning; ``tile_extents``
+returns them). Outside it every pixel would skip the Gaussian
 anyway, so the image is unchanged while the rasterizer visits fewer entries;
 a Gaussian with 255·o ≤ 1 touches no tile.
 
@@ -30,7 +31,6 @@ import numpy as np
 from .. import native
 
 TILE_SIZE = 16
-_ROUNDING_MARGIN = 1.0  # pixels
 
 
 class Bins(NamedTuple):
@@ -50,18 +50,16 @@ def _np(a, dtype):
 
 def tile_extents(radii, conics=None, opacities=None) -> np.ndarray:
     """(N,2) float32 half-extents in pixels used for binning (see the module docstring)."""
-    r = _np(radii, np.float64)
+    if (conics is None) != (opacities is None):
+        conics = opacities = None  # as bin_tiles: tightened only with both
+    return native.core().tile_extents(*_extent_args(radii, conics, opacities))
+
+
+def _extent_args(radii, conics, opacities) -> tuple:
+    r = _np(radii, np.float32).reshape(-1)
     if conics is None or opacities is None:
-        return np.ascontiguousarray(np.stack([r, r], axis=1), dtype=np.float32)
-    con = _np(conics, np.float64)
-    o = _np(opacities, np.float64)
-    det = con[:, 0] * con[:, 2] - con[:, 1] ** 2
-    k = 2.0 * np.log(np.maximum(255.0 * o, 1e-30))
-    live = (r > 0) & (det > 0) & (k > 0)
-    inv = np.where(live, 1.0 / np.where(live, det, 1.0), 0.0)
-    ext = np.sqrt(np.maximum(k, 0.0)[:, None] * np.stack([con[:, 2] * inv, con[:, 0] * inv], axis=1)) + _ROUNDING_MARGIN
-    ext = np.minimum(ext, r[:, None])
-    return np.ascontiguousarray(np.where(live[:, None], ext, 0.0), dtype=np.float32)
+        return r, None, None
+    return r, _np(conics, np.float32).reshape(-1, 3), _np(opacities, np.float32).reshape(-1)
 
 
 def bin_tiles(means2d, radii, depths, width: int, height: int, tile_size: int = TILE_SIZE, conics=None, opacities=None) -> Bins:
@@ -71,11 +69,11 @@ def bin_tiles(means2d, radii, depths, width: int, height: int, tile_size: int = 
         raise ValueError(f"tile_size must be >= 1, got {tile_size}")
     tiles_x = -(-int(width) // tile_size)
     tiles_y = -(-int(height) // tile_size)
-    extents = tile_extents(radii, conics, opacities)
     from .raster_cpu import get_num_threads  # the CPU kernels' thread setting; the result is the same for any
 
-    offsets, ids = native.core().bin_tiles(_np(means2d, np.float32).reshape(-1, 2), extents, _np(depths, np.float32).reshape(-1), int(width),
-                                           int(height), tile_size, get_num_threads())
+    r, con, opac = _extent_args(radii, conics, opacities)
+    offsets, ids = native.core().bin_tiles(_np(means2d, np.float32).reshape(-1, 2), r, _np(depths, np.float32).reshape(-1), int(width),
+                                           int(height), tile_size, get_num_threads(), con, opac)
     return Bins(offsets, ids, tiles_x, tiles_y, tile_size)
 
 
