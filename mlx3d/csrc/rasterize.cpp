@@ -1119,7 +1119,7 @@ HugePageArray<Splat> make_splats(const Inputs& in, const Geometry& geo, int thre
   constexpr int64_t kBlock = 4096;
   const int blocks = static_cast<int>((n + kBlock - 1) / kBlock);
   parallel_items(0, blocks, threads, [&](int blk, int) {
-    for (int64_t g = blk * kBlock; g < std::min(n, (blk + 1) * kBlock); ++g) make_splat(in, geo, g, cull, splats.data()[g]);
+    for (int64_t g = blk * kBlock; g < std::min(n, (blk + 1) * kBlock); ++g) make_splat(in, geo, g, cull, splats[g]);
   });
   return splats;
 }
@@ -1230,13 +1230,8 @@ void accumulate_entries(Inputs in, const Geometry& geo, int num_threads, const B
     Scratch& s = scratch[id];
     for (int t = next_tile.fetch_add(1); t < tiles; t = next_tile.fetch_add(1)) {
       const int c = chunk_of[t];
-      while (summed.load(std::memory_order_acquire) < c - 1) {  // chunk c - 2 still holds the buffer
-        if (id == 0) {
-          if (!sum_ready()) std::this_thread::yield();
-        } else {
-          std::this_thread::yield();
-        }
-      }
+      while (summed.load(std::memory_order_acquire) < c - 1)  // chunk c - 2 still holds the buffer
+        if (id != 0 || !sum_ready()) std::this_thread::yield();
       float* own = buffer_of(c) + (ranges[t] - ranges[chunk_start[c]]) * K;
       std::fill(own, own + (ranges[t + 1] - ranges[t]) * K, 0.0f);
       backward_tile(in, geo, t, s, bw, own);
