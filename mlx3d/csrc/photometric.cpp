@@ -48,45 +48,64 @@ struct Image {
   size_t size() const { return size_t(h) * w * c; }
 };
 
+// x86-64 with GCC on Linux: the row passes below are also compiled for AVX2 and picked at load time
+// (ifunc). Each output element is the same sequence of float operations (no FMA contraction without
+// -mfma), so the results do not depend on the variant.
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && defined(__linux__)
+#define MLX3D_ROW_CLONES __attribute__((target_clones("avx2", "default")))
+#else
+#define MLX3D_ROW_CLONES
+#endif
+
+// Rows [lo, hi) of the vertical pass: tmp = the column filter of src (zero-padded).
+MLX3D_ROW_CLONES void vertical_rows(const float* src, float* tmp, Image im, const float* taps, int r, int64_t lo, int64_t hi) {
+  const int rowlen = im.w * im.c;
+  for (int i = int(lo); i < int(hi); ++i) {
+    float* out = tmp + size_t(i) * rowlen;
+    const float* mid = src + size_t(i) * rowlen;
+    for (int j = 0; j < rowlen; ++j) out[j] = taps[r] * mid[j];
+    for (int k = 0; k < r; ++k) {
+      const int up = i - r + k, down = i + r - k;
+      const float t = taps[k];
+      const float* a = up >= 0 ? src + size_t(up) * rowlen : nullptr;
+      const float* d = down < im.h ? src + size_t(down) * rowlen : nullptr;
+      if (a && d)
+        for (int j = 0; j < rowlen; ++j) out[j] += t * (a[j] + d[j]);
+      else if (a)
+        for (int j = 0; j < rowlen; ++j) out[j] += t * a[j];
+      else if (d)
+        for (int j = 0; j < rowlen; ++j) out[j] += t * d[j];
+    }
+  }
+}
+
+// Rows [lo, hi) of the horizontal pass: dst = the row filter of tmp, each row copied into a
+// zero-padded scratch row `row` (rowlen + 2 r C floats; branch-free, vectorisable).
+MLX3D_ROW_CLONES void horizontal_rows(const float* tmp, float* dst, float* row, Image im, const float* taps, int r, int64_t lo, int64_t hi) {
+  const int rowlen = im.w * im.c, pad = r * im.c;
+  for (int i = int(lo); i < int(hi); ++i) {
+    std::copy(tmp + size_t(i) * rowlen, tmp + size_t(i + 1) * rowlen, row + pad);
+    float* out = dst + size_t(i) * rowlen;
+    const float* centre = row + pad;
+    for (int j = 0; j < rowlen; ++j) out[j] = taps[r] * centre[j];
+    for (int k = 0; k < r; ++k) {
+      const float t = taps[k];
+      const float* a = row + k * im.c;            // offset -(r - k) pixels
+      const float* d = row + (2 * r - k) * im.c;  // offset +(r - k) pixels
+      for (int j = 0; j < rowlen; ++j) out[j] += t * (a[j] + d[j]);
+    }
+  }
+}
+
 // dst = zero-padded "same" separable filter of src with the symmetric `taps`; tmp: scratch of src's size.
 void blur(const float* src, float* dst, float* tmp, Image im, const std::vector<float>& taps, int num_threads) {
-  const int r = static_cast<int>(taps.size()) / 2, rowlen = im.w * im.c;
-  parallel_ranges(im.h, num_threads, kRows, [=](int64_t lo, int64_t hi) {  // vertical pass (taps copied per thread)
-    for (int i = int(lo); i < int(hi); ++i) {
-      float* out = tmp + size_t(i) * rowlen;
-      const float* mid = src + size_t(i) * rowlen;
-      for (int j = 0; j < rowlen; ++j) out[j] = taps[r] * mid[j];
-      for (int k = 0; k < r; ++k) {
-        const int up = i - r + k, down = i + r - k;
-        const float t = taps[k];
-        const float* a = up >= 0 ? src + size_t(up) * rowlen : nullptr;
-        const float* d = down < im.h ? src + size_t(down) * rowlen : nullptr;
-        if (a && d)
-          for (int j = 0; j < rowlen; ++j) out[j] += t * (a[j] + d[j]);
-        else if (a)
-          for (int j = 0; j < rowlen; ++j) out[j] += t * a[j];
-        else if (d)
-          for (int j = 0; j < rowlen; ++j) out[j] += t * d[j];
-      }
-    }
+  const int r = static_cast<int>(taps.size()) / 2;
+  parallel_ranges(im.h, num_threads, kRows, [=](int64_t lo, int64_t hi) {  // taps copied per thread
+    vertical_rows(src, tmp, im, taps.data(), r, lo, hi);
   });
-  // horizontal pass on each row copied into a zero-padded scratch row (branch-free, vectorisable)
-  const int pad = r * im.c;
   parallel_ranges(im.h, num_threads, kRows, [=](int64_t lo, int64_t hi) {
-    std::vector<float> scratch(rowlen + 2 * pad, 0.0f);
-    float* row = scratch.data();
-    for (int i = int(lo); i < int(hi); ++i) {
-      std::copy(tmp + size_t(i) * rowlen, tmp + size_t(i + 1) * rowlen, row + pad);
-      float* out = dst + size_t(i) * rowlen;
-      const float* centre = row + pad;
-      for (int j = 0; j < rowlen; ++j) out[j] = taps[r] * centre[j];
-      for (int k = 0; k < r; ++k) {
-        const float t = taps[k];
-        const float* a = row + k * im.c;            // offset -(r - k) pixels
-        const float* d = row + (2 * r - k) * im.c;  // offset +(r - k) pixels
-        for (int j = 0; j < rowlen; ++j) out[j] += t * (a[j] + d[j]);
-      }
-    }
+    std::vector<float> scratch(im.w * im.c + 2 * r * im.c, 0.0f);
+    horizontal_rows(tmp, dst, scratch.data(), im, taps.data(), r, lo, hi);
   });
 }
 
