@@ -147,12 +147,11 @@ def _profile(trainer, camera, target, repeats: int) -> dict:
     grad2d = cot(proj.means2d)
     mx.eval(grad2d)
 
-    def stats():  # the density statistics lines of GaussianTrainer.step
-        visible = np.array(proj.radii > 0)
-        g = np.array(grad2d, dtype=np.float64) * [0.5 * camera.width, 0.5 * camera.height]
-        trainer.grad_accum[visible] += np.linalg.norm(g[visible], axis=1)
-        trainer.grad_count[visible] += 1
-        trainer.max_radii = np.maximum(trainer.max_radii, np.array(proj.radii))
+    visible = proj.radii > 0
+    mx.eval(visible)
+
+    def stats():  # what GaussianTrainer.step adds to the density statistics
+        trainer.add_screen_statistics(camera, visible, grad2d, proj.radii)
 
     out = {
         "projection (fwd+bwd)": _median_ms(projection, repeats),

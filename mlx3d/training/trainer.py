@@ -351,13 +351,7 @@ class GaussianTrainer:
             ran.append("sgld_noise")
         self.step_count += 1
 
-        # screen-space gradient in NDC units (as 3DGS's threshold expects)
-        # (whole-array passes: boolean indexing of the arrays took three times as long)
-        visible = np.array(out["visible"])
-        g = np.array(grad2d, dtype=np.float64) * [0.5 * camera.width, 0.5 * camera.height]
-        self.grad_accum += np.where(visible, np.sqrt(g[:, 0] * g[:, 0] + g[:, 1] * g[:, 1]), 0.0)  # |g|, as np.linalg.norm
-        self.grad_count += visible
-        self.max_radii = np.maximum(self.max_radii, np.array(out["radii"]))
+        self.add_screen_statistics(camera, out["visible"], grad2d, out["radii"])
 
         info = {"step": self.step_count, "loss": loss_value, "psnr": float(quality)}
         for key in ("depth_variance_loss", "normal_loss"):
@@ -377,6 +371,16 @@ class GaussianTrainer:
             "geometry": {"depth_variance": info.get("depth_variance_loss", 0.0), "normal_consistency": info.get("normal_loss", 0.0)},
         })
         return info
+
+    def add_screen_statistics(self, camera, visible, grad2d, radii) -> None:
+        """Adds one view to the density statistics: visible (N,) bool, grad2d (N,2) dL/d(means2d) in
+        pixels, radii (N,). The screen-space gradient is taken in NDC units (as 3DGS's threshold expects)."""
+        visible = np.array(visible)
+        g = np.array(grad2d, dtype=np.float64) * [0.5 * camera.width, 0.5 * camera.height]
+        # whole-array passes: boolean indexing of the arrays took three times as long
+        self.grad_accum += np.where(visible, np.sqrt(g[:, 0] * g[:, 0] + g[:, 1] * g[:, 1]), 0.0)  # |g|, as np.linalg.norm
+        self.grad_count += visible
+        self.max_radii = np.maximum(self.max_radii, np.array(radii))
 
     def _apply_event(self, event: str):
         c = self.config
