@@ -153,6 +153,19 @@ def _colour_attribute(mesh, name):
 
 
 # ------------------------------------------------------------------ geometry
+def canonical_triangles(verts, loops, mat_idx):
+    """The triangles (T,3) in an order that depends only on the mesh: each one's lowest vertex index first
+    (a rotation, so the winding stays) and the triangles sorted by their vertices. Blender's loop
+    triangles can come in another order, and with other corners first, from one run to the next, which
+    made the seeded point sample (and so the demo's result) differ between runs of the same scene."""
+    first = np.argmin(verts, axis=1)
+    cols = (first[:, None] + np.arange(3)) % 3
+    rows = np.arange(len(verts))[:, None]
+    verts, loops = verts[rows, cols], loops[rows, cols]
+    order = np.lexsort((verts[:, 2], verts[:, 1], verts[:, 0]))
+    return verts[order], loops[order], mat_idx[order]
+
+
 class _Surfaces:
     """World-space triangles of the objects, with how to colour points on them."""
 
@@ -182,6 +195,7 @@ class _Surfaces:
                 verts, loops = verts.reshape(-1, 3), loops.reshape(-1, 3)
                 if np.linalg.det(m[:3, :3]) < 0:  # a mirroring transform turns the winding: keep the faces' normals outward
                     verts, loops = verts[:, ::-1], loops[:, ::-1]
+                verts, loops, mat_idx = canonical_triangles(verts, loops, mat_idx)
                 tris.append(world[verts])
                 face_parts.append(verts + base)
                 colour_parts.append(self._triangle_colours(obj_eval, mesh, verts, loops, mat_idx))

@@ -386,6 +386,25 @@ def test_mesh_ply_holds_the_captured_triangles_in_world_space(captured):
     assert np.array_equal(np.unique(colours[~on_sphere], axis=0), [srgb8(CUBE_RGB)])
 
 
+def test_triangle_order_and_first_corner_do_not_change_the_point_sample(extension):
+    # the same triangles in another order, each with another corner first, give the same canonical
+    # list (so the same seeded points); the winding of every triangle is kept
+    capture = extension.addon.capture
+    rng = np.random.default_rng(4)
+    verts = np.array([rng.permutation(40)[:3] for _ in range(60)])
+    loops, mat = verts * 10 + 1, rng.integers(0, 3, 60)
+    shuffle, turn = rng.permutation(60), rng.integers(0, 3, 60)
+    cols = (turn[:, None] + np.arange(3)) % 3
+    rows = np.arange(60)[:, None]
+    other = (verts[shuffle][rows, cols], loops[shuffle][rows, cols], mat[shuffle])
+    a, b = capture.canonical_triangles(verts, loops, mat), capture.canonical_triangles(*other)
+    for x, y in zip(a, b):
+        np.testing.assert_array_equal(x, y)
+    cyclic = {tuple(np.roll(t, k)) for t in verts for k in range(3)}
+    assert all(tuple(t) in cyclic for t in a[0]) and (a[0][:, 0] == a[0].min(axis=1)).all()
+    np.testing.assert_array_equal(a[1], a[0] * 10 + 1)  # loops and materials travel with their triangles
+
+
 def test_scene_is_left_as_it_was(captured):
     assert captured.after == captured.before
     assert captured.seconds < 20
