@@ -152,29 +152,27 @@ std::pair<mx::array, mx::array> bin_tiles(const Vec2& means2d, const Vec1& radii
     // Gaussians that touch a tile, by (depth key, index): unique 64-bit keys, so any sort is stable. Listed
     // in index order by all threads at once: each counts its range's, then writes them from its offset.
     auto touches = [&](int64_t i) { return rects[i].x1 > rects[i].x0 && rects[i].y1 > rects[i].y0; };
-    const int list_threads = resolve_threads(num_threads, static_cast<int>(std::max<int64_t>(1, (n + kMinPerThread - 1) / kMinPerThread)));
-    const int64_t list_step = (n + list_threads - 1) / list_threads;
-    std::vector<int64_t> first(list_threads + 1, 0);
-    parallel_ranges(n, list_threads, kMinPerThread, [&](int64_t a, int64_t b) {
+    const RangeSplit listing = split_ranges(n, num_threads, kMinPerThread);
+    std::vector<int64_t> first(listing.threads + 1, 0);
+    parallel_ranges(n, listing.threads, kMinPerThread, [&](int64_t a, int64_t b) {
       int64_t live = 0;
       for (int64_t i = a; i < b; ++i) live += touches(i);
-      if (a < b) first[a / list_step + 1] = live;  // a non-empty range starts at its thread's t * list_step
+      if (a < b) first[listing.index(a) + 1] = live;
     });
-    for (int t = 0; t < list_threads; ++t) first[t + 1] += first[t];
-    const int64_t k = first[list_threads];
+    for (int t = 0; t < listing.threads; ++t) first[t + 1] += first[t];
+    const int64_t k = first[listing.threads];
     std::vector<uint64_t> order(k);
-    parallel_ranges(n, list_threads, kMinPerThread, [&](int64_t a, int64_t b) {
+    parallel_ranges(n, listing.threads, kMinPerThread, [&](int64_t a, int64_t b) {
       if (a == b) return;
-      int64_t j = first[a / list_step];
+      int64_t j = first[listing.index(a)];
       for (int64_t i = a; i < b; ++i)
         if (touches(i)) order[j++] = (uint64_t(depth_key(d[i])) << 32) | uint64_t(i);
     });
-    const int chunks = resolve_threads(num_threads, static_cast<int>(std::max<int64_t>(1, (k + kMinPerThread - 1) / kMinPerThread)));
-    const int64_t step = (k + chunks - 1) / std::max(chunks, 1);
-    auto chunk_of = [&](int64_t a) { return static_cast<int>(step ? a / step : 0); };
+    const RangeSplit split = split_ranges(k, num_threads, kMinPerThread);
+    const int chunks = split.threads;
     // Sort each chunk, then merge neighbours pairwise.
     parallel_ranges(k, chunks, kMinPerThread, [&](int64_t a, int64_t b) { std::sort(order.begin() + a, order.begin() + b); });
-    for (int64_t width_ = step; width_ > 0 && width_ < k; width_ *= 2)
+    for (int64_t width_ = split.step; width_ > 0 && width_ < k; width_ *= 2)
       for (int64_t a = 0; a + width_ < k; a += 2 * width_)
         std::inplace_merge(order.begin() + a, order.begin() + a + width_, order.begin() + std::min(k, a + 2 * width_));
     // The rectangles in that order, gathered once, so that the two passes below read them in sequence.
@@ -185,7 +183,7 @@ std::pair<mx::array, mx::array> bin_tiles(const Vec2& means2d, const Vec1& radii
     // Entries per (chunk, tile), then each chunk's first slot in each bucket.
     std::vector<int64_t> counts(static_cast<size_t>(chunks) * num_tiles, 0);
     parallel_ranges(k, chunks, kMinPerThread, [&](int64_t a, int64_t b) {
-      int64_t* c = &counts[static_cast<size_t>(chunk_of(a)) * num_tiles];
+      int64_t* c = &counts[static_cast<size_t>(split.index(a)) * num_tiles];
       for (int64_t j = a; j < b; ++j) for_each_tile(sorted[j], tiles_x, [&](int64_t t) { ++c[t]; });
     });
     for (int64_t t = 0; t < num_tiles; ++t) {
@@ -201,7 +199,7 @@ std::pair<mx::array, mx::array> bin_tiles(const Vec2& means2d, const Vec1& radii
     ids = HugePageArray<int32_t>(total);  // not zeroed: every entry is written below, by the threads; each
                                           // Gaussian writes to one bucket per tile: huge pages spare the TLB
     parallel_ranges(k, chunks, kMinPerThread, [&](int64_t a, int64_t b) {
-      int64_t* cursor = &counts[static_cast<size_t>(chunk_of(a)) * num_tiles];
+      int64_t* cursor = &counts[static_cast<size_t>(split.index(a)) * num_tiles];
       for (int64_t j = a; j < b; ++j) {
         const int32_t i = static_cast<int32_t>(order[j] & 0xffffffffu);
         for_each_tile(sorted[j], tiles_x, [&](int64_t t) { ids[cursor[t]++] = i; });

@@ -45,6 +45,19 @@ void parallel_items(int t0, int t1, int threads, Fn&& fn) {
   for (auto& th : pool) th.join();
 }
 
+// How parallel_ranges cuts [0, n): `threads` contiguous ranges of `step` items (the last ones shorter,
+// possibly empty). index(lo) is the thread whose non-empty range starts at lo.
+struct RangeSplit {
+  int threads;
+  int64_t step;
+  int index(int64_t lo) const { return step ? static_cast<int>(lo / step) : 0; }
+};
+
+inline RangeSplit split_ranges(int64_t n, int num_threads, int64_t min_per_thread) {
+  const int threads = resolve_threads(num_threads, static_cast<int>(std::max<int64_t>(1, (n + min_per_thread - 1) / min_per_thread)));
+  return {threads, (n + threads - 1) / threads};
+}
+
 // Runs fn(lo, hi) on contiguous ranges covering [0, n), one per thread (num_threads, 0: all hardware
 // threads, at most one per min_per_thread items), each thread with its own copy of fn (capture by
 // value): for per-element work. Sharing the callable's captures between threads through
@@ -52,8 +65,9 @@ void parallel_items(int t0, int t1, int threads, Fn&& fn) {
 // SH and projection kernels; copies scale.
 template <typename Fn>
 void parallel_ranges(int64_t n, int num_threads, int64_t min_per_thread, const Fn& fn) {
-  const int threads = resolve_threads(num_threads, static_cast<int>(std::max<int64_t>(1, (n + min_per_thread - 1) / min_per_thread)));
-  const int64_t step = (n + threads - 1) / threads;
+  const RangeSplit split = split_ranges(n, num_threads, min_per_thread);
+  const int threads = split.threads;
+  const int64_t step = split.step;
   std::vector<std::thread> pool;
   pool.reserve(threads - 1);
   for (int t = 1; t < threads; ++t) pool.emplace_back(fn, std::min(n, t * step), std::min(n, (t + 1) * step));

@@ -1212,7 +1212,6 @@ void accumulate_entries(Inputs in, const Geometry& geo, int num_threads, const B
   std::unique_ptr<float[]> buffers(new float[(chunks > 1 ? 2 : 1) * buffer_floats]);
   auto buffer_of = [&](int c) { return buffers.get() + static_cast<size_t>(c % 2) * buffer_floats; };
 
-  std::atomic<int> next_tile(0);
   std::atomic<int> summed(0);  // chunks [0, summed) are in acc
   std::unique_ptr<std::atomic<int>[]> tiles_left(new std::atomic<int>[chunks]);
   for (int c = 0; c < chunks; ++c) tiles_left[c].store(chunk_start[c + 1] - chunk_start[c]);
@@ -1226,27 +1225,17 @@ void accumulate_entries(Inputs in, const Geometry& geo, int num_threads, const B
     }
     return any;
   };
-  auto worker = [&](int id) {
-    Scratch& s = scratch[id];
-    for (int t = next_tile.fetch_add(1); t < tiles; t = next_tile.fetch_add(1)) {
-      const int c = chunk_of[t];
-      while (summed.load(std::memory_order_acquire) < c - 1)  // chunk c - 2 still holds the buffer
-        if (id != 0 || !sum_ready()) std::this_thread::yield();
-      float* own = buffer_of(c) + (ranges[t] - ranges[chunk_start[c]]) * K;
-      std::fill(own, own + (ranges[t + 1] - ranges[t]) * K, 0.0f);
-      backward_tile(in, geo, t, s, bw, own);
-      tiles_left[c].fetch_sub(1, std::memory_order_acq_rel);
-      if (id == 0) sum_ready();
-    }
-    if (id == 0)
-      while (summed.load(std::memory_order_relaxed) < chunks)
-        if (!sum_ready()) std::this_thread::yield();
-  };
-  std::vector<std::thread> pool;
-  pool.reserve(threads - 1);
-  for (int i = 1; i < threads; ++i) pool.emplace_back(worker, i);
-  worker(0);
-  for (auto& th : pool) th.join();
+  parallel_items(0, tiles, threads, [&](int t, int id) {
+    const int c = chunk_of[t];
+    while (summed.load(std::memory_order_acquire) < c - 1)  // chunk c - 2 still holds the buffer
+      if (id != 0 || !sum_ready()) std::this_thread::yield();
+    float* own = buffer_of(c) + (ranges[t] - ranges[chunk_start[c]]) * K;
+    std::fill(own, own + (ranges[t + 1] - ranges[t]) * K, 0.0f);
+    backward_tile(in, geo, t, scratch[id], bw, own);
+    tiles_left[c].fetch_sub(1, std::memory_order_acq_rel);
+    if (id == 0) sum_ready();
+  });
+  sum_ready();  // the chunks whose tiles finished last (every tile is done now)
 }
 
 void run_backward(Inputs in, const Geometry& geo, int num_threads, const BackwardIn& bw, const GradOut& out) {

@@ -94,10 +94,7 @@ void run_forward(ShInputs in, int num_threads, float* rgb) {
 // d_block: dL/d(each block), laid out as the inputs.
 void run_backward(ShInputs in, const float* cot, int num_threads, float* const d_block[2], float* d_means) {
   const int bases = sh_num_bases(in.degree);
-  float* d0 = d_block[0];
-  float* d1 = d_block[1];
-  parallel_ranges(in.n, num_threads, kBlock, [in, cot, d0, d1, d_means, bases](int64_t lo, int64_t hi) {
-    float* const d[2] = {d0, d1};
+  parallel_ranges(in.n, num_threads, kBlock, [in, cot, d_block, d_means, bases](int64_t lo, int64_t hi) {
     for (int64_t i = lo; i < hi; ++i) {
       const ShDir u = direction_of(in, i);
       const ShBasis b = sh_basis(in.degree, u.x, u.y, u.z);
@@ -107,7 +104,7 @@ void run_backward(ShInputs in, const float* cot, int num_threads, float* const d
       float gx = 0.0f, gy = 0.0f, gz = 0.0f;
       for (int k = 0; k < in.k; ++k) {
         const float* s = coefficient(in.block, in.kb, i, k);
-        float* ds = coefficient(d, in.kb, i, k);
+        float* ds = coefficient(d_block, in.kb, i, k);
         float along = 0.0f;  // Σ_c g_c sh[k][c]
         for (int ch = 0; ch < 3; ++ch) {
           ds[ch] = k < bases ? g[ch] * b.y[k] : 0.0f;
@@ -153,10 +150,7 @@ class ShColorBackward : public ShColorBase {
     const float* cot = inputs[blocks_ + 2].data<float>();
     float* d_block[2] = {outputs[0].data<float>(), blocks_ > 1 ? outputs[1].data<float>() : nullptr};
     float* d_means = outputs[blocks_].data<float>();
-    encoder.dispatch([in, cot, d0 = d_block[0], d1 = d_block[1], d_means, threads = num_threads_]() {
-      float* const d[2] = {d0, d1};
-      run_backward(in, cot, threads, d, d_means);
-    });
+    encoder.dispatch([in, cot, d_block, d_means, threads = num_threads_]() { run_backward(in, cot, threads, d_block, d_means); });
   }
 
   std::vector<mx::array> vjp(const std::vector<mx::array>&, const std::vector<mx::array>&, const std::vector<int>&,

@@ -50,12 +50,11 @@ def _np(a, dtype):
 
 def tile_extents(radii, conics=None, opacities=None) -> np.ndarray:
     """(N,2) float32 half-extents in pixels used for binning (see the module docstring)."""
-    if (conics is None) != (opacities is None):
-        conics = opacities = None  # as bin_tiles: tightened only with both
     return native.core().tile_extents(*_extent_args(radii, conics, opacities))
 
 
 def _extent_args(radii, conics, opacities) -> tuple:
+    """The C++ binning's extent inputs: radii, and conics and opacities only when both are given."""
     r = _np(radii, np.float32).reshape(-1)
     if conics is None or opacities is None:
         return r, None, None
