@@ -707,8 +707,8 @@ RM_INLINE void finish_surface(LF* sb, int C) {
 // is unrolled, so that GCC's scheduling before register allocation
 // (-fschedule-insns, CMakeLists.txt) interleaves the chains instruction by
 // instruction instead of leaving it to the core's out-of-order window: about
-// 10% off the forward and backward passes (README, "The tile kernels, per
-// core"). Each pair runs the same operations, so results are bitwise the same.
+// 10% off the forward and backward passes (README, "Pair batches"). Each
+// pair runs the same operations, so results are bitwise the same.
 constexpr int kPairBatch = 8;
 
 // Tile entries are listed per block in chunks of this many, so that a tile
