@@ -710,6 +710,7 @@ RM_INLINE void finish_surface(LF* sb, int C) {
 // 10% off the forward and backward passes (README, "Pair batches"). Each
 // pair runs the same operations, so results are bitwise the same.
 constexpr int kPairBatch = 8;
+static_assert(kPairBatch == 8, "the kernels' '#pragma GCC unroll 8' unrolls one pair batch");
 
 // Tile entries are listed per block in chunks of this many, so that a tile
 // whose pixels all stop early does not list the rest.
