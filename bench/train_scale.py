@@ -6,7 +6,12 @@ degree 3, active), and ``GaussianTrainer.step`` (vanilla, no density control
 inside the timed steps) against a target rendered from the second camera.
 ``--gaussians`` above the 138,766 points repeats them with a seeded jitter of
 a tenth of their 3-NN spacing. Each case runs in a fresh process (its own peak
-RSS, its own ``MLX3D_NUM_THREADS``).
+RSS) that times every thread count, alternating them step by step
+(``set_num_threads``; the order reversed every round), so that a shared
+machine's slow and fast phases fall on all of them alike and the speed-up is
+a ratio within one run. Each thread count also gets the cores it kept busy
+(CPU time over wall time of its steps): below the thread count, the rest is
+serial work or waiting.
 
 ``--profile`` also times each stage of the step on its own, forward and
 backward, through the same public functions the step calls (projection,
@@ -50,6 +55,27 @@ def _median_ms(fn, repeats: int) -> float:
     return 1000.0 * times[len(times) // 2]
 
 
+def _alternating(fn, threads: list, repeats: int) -> dict:
+    """{threads: (median ms, cores busy)} of fn, the thread counts taking turns (order reversed every round)."""
+    from mlx3d.render.raster_cpu import set_num_threads
+
+    wall = {t: [] for t in threads}
+    cpu = {t: 0.0 for t in threads}
+    for t in threads:  # warm-up at each thread count
+        set_num_threads(t)
+        fn()
+    for r in range(repeats):
+        for t in threads if r % 2 == 0 else threads[::-1]:
+            set_num_threads(t)
+            c0, t0 = os.times(), time.perf_counter()
+            fn()
+            t1, c1 = time.perf_counter(), os.times()
+            wall[t].append(t1 - t0)
+            cpu[t] += (c1.user - c0.user) + (c1.system - c0.system)
+    set_num_threads(None)
+    return {t: (1000.0 * sorted(w)[len(w) // 2], cpu[t] / sum(w)) for t, w in wall.items()}
+
+
 def _setup(n: int, scale: float):
     import mlx.core as mx
     import numpy as np
@@ -81,8 +107,8 @@ def _setup(n: int, scale: float):
     return model, cams[0], target
 
 
-def _profile(trainer, camera, target, repeats: int) -> dict:
-    """ms of each stage on its own (forward and backward where it has one)."""
+def _profile(trainer, camera, target, threads: list, repeats: int) -> dict:
+    """{threads: {stage: ms}} of each stage on its own (forward and backward where it has one)."""
     import mlx.core as mx
     import numpy as np
 
@@ -153,17 +179,20 @@ def _profile(trainer, camera, target, repeats: int) -> dict:
     def stats():  # what GaussianTrainer.step adds to the density statistics
         trainer.add_screen_statistics(camera, visible, grad2d, proj.radii)
 
-    out = {
-        "projection (fwd+bwd)": _median_ms(projection, repeats),
-        "SH degree 3 (fwd+bwd)": _median_ms(sh_eval, repeats),
-        "tile binning": _median_ms(binning, repeats),
-        "rasterizer forward": _median_ms(raster_forward, repeats),
-        "rasterizer fwd+bwd": _median_ms(raster_both, repeats),
-        "loss L1+D-SSIM (fwd+bwd)": _median_ms(loss, repeats),
-        "Adam (59 params)": _median_ms(adam, repeats),
-        "density statistics": _median_ms(stats, repeats),
+    stages = {
+        "projection (fwd+bwd)": projection,
+        "SH degree 3 (fwd+bwd)": sh_eval,
+        "tile binning": binning,
+        "rasterizer forward": raster_forward,
+        "rasterizer fwd+bwd": raster_both,
+        "loss L1+D-SSIM (fwd+bwd)": loss,
+        "Adam (59 params)": adam,
+        "density statistics": stats,
     }
-    out["tile entries"] = int(bins.flatten_ids.size)
+    out = {t: {} for t in threads}
+    for name, fn in stages.items():
+        for t, (ms, _) in _alternating(fn, threads, repeats).items():
+            out[t][name] = ms
     return out
 
 
@@ -178,47 +207,69 @@ def _bandwidth_gbs() -> float:
 
 
 def child(args) -> None:
+    """One case in this process: every thread count, alternating; prints one JSON result per thread count."""
     import mlx.core as mx
 
     from mlx3d.training import GaussianTrainer, TrainerConfig
 
+    threads = _thread_counts(args.threads)
     model, camera, target = _setup(args.gaussians, args.scale)
     config = TrainerConfig(steps=10**6, densify_from=10**6, sh_increase_every=0, cache_limit_gb=args.cache_limit)
     trainer = GaussianTrainer(model, config, scene_extent=5.0)
     trainer.active_sh_degree = 3
-    for _ in range(2):  # warm-up: Adam moments, compilation
-        trainer.step(camera, target)
-    times = []
-    for _ in range(args.steps):
-        t0 = time.perf_counter()
-        trainer.step(camera, target)
-        times.append(time.perf_counter() - t0)
-    times.sort()
-    result = {"gaussians": len(trainer.model), "width": camera.width, "height": camera.height, "threads": args.threads_one,
-              "ms_per_step": 1000.0 * times[len(times) // 2], "peak_mb": peak_rss_mb()}
-    if args.profile:
-        result["stages"] = _profile(trainer, camera, target, max(3, args.steps))
-        result["bandwidth_gbs"] = _bandwidth_gbs()
+    trainer.step(camera, target)  # warm-up: Adam moments, compilation (then one more per thread count)
+    steps = _alternating(lambda: trainer.step(camera, target), threads, args.steps)
+    peak = peak_rss_mb()
+    stages = _profile(trainer, camera, target, threads, max(3, args.steps)) if args.profile else None
+    bandwidth = _bandwidth_gbs() if args.profile else None
+    entries = _tile_entries(trainer, camera) if args.profile else None
+    results = []
+    for t in threads:
+        r = {"gaussians": len(trainer.model), "width": camera.width, "height": camera.height, "threads": t,
+             "ms_per_step": steps[t][0], "cores_busy": steps[t][1], "peak_mb": peak}
+        if stages:
+            r["stages"] = dict(stages[t], **{"tile entries": entries})
+            r["bandwidth_gbs"] = bandwidth
+        results.append(r)
     mx.clear_cache()
-    print(json.dumps(result))
+    print(json.dumps(results))
 
 
-def _run(gaussians: int, scale: float, threads: int, args) -> dict:
+def _tile_entries(trainer, camera) -> int:
+    import mlx.core as mx
+
+    from mlx3d.render.binning import bin_tiles
+    from mlx3d.render.projection import project_ewa
+
+    p = trainer.model.params
+    proj = project_ewa(camera, p["means"], p["quats"], mx.exp(p["scales"]))
+    bins = bin_tiles(proj.means2d, proj.radii, proj.depths, camera.width, camera.height, conics=proj.conics,
+                     opacities=mx.sigmoid(p["opacities"]))
+    return int(bins.flatten_ids.size)
+
+
+def _thread_counts(text: str) -> list:
+    counts = [int(t) for t in text.split(",") if t]
+    if not counts or min(counts) < 1 or len(set(counts)) != len(counts):
+        raise ValueError(f"--threads takes distinct positive integers, got {text!r}")
+    return counts
+
+
+def _run(gaussians: int, scale: float, args) -> list:
     cmd = [sys.executable, os.path.abspath(__file__), "--child", "--gaussians", str(gaussians), "--scale", str(scale),
-           "--threads-one", str(threads), "--steps", str(args.steps)] + (["--profile"] if args.profile else [])
+           "--threads", args.threads, "--steps", str(args.steps)] + (["--profile"] if args.profile else [])
     if args.cache_limit is not None:
         cmd += ["--cache-limit", str(args.cache_limit)]
-    env = dict(os.environ, MLX3D_NUM_THREADS=str(threads))
-    proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    proc = subprocess.run(cmd, capture_output=True, text=True)
     if proc.returncode != 0:
-        raise SystemExit(f"case {gaussians}:{scale} with {threads} threads failed:\n{proc.stderr[-2000:]}")
+        raise SystemExit(f"case {gaussians}:{scale} failed:\n{proc.stderr[-2000:]}")
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", default=CASES, help=f"comma-separated GAUSSIANS:SCALE (default {CASES}; scale 1 = 648x420)")
-    parser.add_argument("--threads", default="1,2", help="comma-separated thread counts (default 1,2)")
+    parser.add_argument("--threads", default="1,2", help="comma-separated thread counts, timed in turns in one process (default 1,2)")
     parser.add_argument("--steps", type=int, default=5, help="timed steps per case (median reported; default 5)")
     parser.add_argument("--profile", action="store_true", help="also time each stage of the step on its own")
     parser.add_argument("--cache-limit", type=float, metavar="GB",
@@ -228,7 +279,6 @@ def main() -> None:
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--gaussians", type=int, default=138_766, help=argparse.SUPPRESS)
     parser.add_argument("--scale", type=float, default=1.0, help=argparse.SUPPRESS)
-    parser.add_argument("--threads-one", type=int, default=1, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
         child(args)
@@ -239,28 +289,30 @@ def main() -> None:
         parser.error("--steps must be at least 1")
     try:
         cases = [(int(g), float(s)) for g, s in (c.split(":") for c in args.cases.split(",") if c)]
-        threads = [int(t) for t in args.threads.split(",") if t]
+        threads = _thread_counts(args.threads)
     except ValueError:
-        parser.error("--cases takes GAUSSIANS:SCALE pairs and --threads integers")
+        parser.error("--cases takes GAUSSIANS:SCALE pairs and --threads distinct positive integers")
     results = []
     load = LoadSampler()
     load.start()
     for gaussians, scale in cases:
-        for t in threads:
-            r = _run(gaussians, scale, t, args)
+        for r in _run(gaussians, scale, args):
             results.append(r)
-            print(f"{r['gaussians']:,} Gaussians {r['width']}x{r['height']} {t} thread(s): {r['ms_per_step']:,.0f} ms/step, "
-                  f"peak {r['peak_mb']:,.0f} MB", file=sys.stderr, flush=True)
+            print(f"{r['gaussians']:,} Gaussians {r['width']}x{r['height']} {r['threads']} thread(s): {r['ms_per_step']:,.0f} ms/step, "
+                  f"{r['cores_busy']:.2f} cores busy, peak {r['peak_mb']:,.0f} MB", file=sys.stderr, flush=True)
     load.stop.set()
     load.join()
     cores = os.cpu_count() or 1
     lines = [f"Machine: {machine_line()}. Load: {load.line(cores, max(threads) + 0.5 * cores)}.", "",
-             f"Median of {args.steps} steps after 2 warm-up steps, vanilla, SH degree 3 active.", "",
-             "| Gaussians | image | threads | ms per step | speed-up vs 1 thread | peak RSS (MB) |", "|---:|---|---:|---:|---:|---:|"]
+             f"Median of {args.steps} steps per thread count after warm-up steps, vanilla, SH degree 3 active; the thread counts "
+             "take turns step by step in one process per case (so peak RSS is the case's).", "",
+             "| Gaussians | image | threads | ms per step | speed-up vs 1 thread | cores busy | peak RSS (MB) |",
+             "|---:|---|---:|---:|---:|---:|---:|"]
     for r in results:
         one = next((x for x in results if x["gaussians"] == r["gaussians"] and x["width"] == r["width"] and x["threads"] == 1), None)
         speedup = f"{one['ms_per_step'] / r['ms_per_step']:.2f}" if one else ""
-        lines.append(f"| {r['gaussians']:,} | {r['width']}x{r['height']} | {r['threads']} | {r['ms_per_step']:,.0f} | {speedup} | {r['peak_mb']:,.0f} |")
+        lines.append(f"| {r['gaussians']:,} | {r['width']}x{r['height']} | {r['threads']} | {r['ms_per_step']:,.0f} | {speedup} | "
+                     f"{r['cores_busy']:.2f} | {r['peak_mb']:,.0f} |")
     if args.profile:
         for key in sorted({(r["gaussians"], r["width"], r["height"]) for r in results}):
             rows = [r for r in results if (r["gaussians"], r["width"], r["height"]) == key]
