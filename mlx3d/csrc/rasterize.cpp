@@ -876,9 +876,9 @@ struct BackwardIn {
   const float* g_alpha;
 };
 
-// Accumulates the tile's gradients into entry_grad[(e - lo) * K + field]
-// (K = 6 + C fields: mean_x, mean_y, conic a, b, c, opacity, features), which
-// the caller zeroed for the tile's entries. Pixel blocks are kLanes
+// Writes the tile's gradients to entry_grad[(e - lo) * K + field] for each of
+// its entries e (K = 6 + C fields: mean_x, mean_y, conic a, b, c, opacity,
+// features; zero for an entry no pixel uses). Pixel blocks are kLanes
 // consecutive pixels in row-major order (the lane sums, and so the gradients'
 // last bits, depend on this grouping); each walks back from the largest
 // `last` of its pixels, over the entries that reach it.
@@ -910,7 +910,9 @@ RM_INLINE void backward_tile_impl(const Inputs& in, const Geometry& geo, int t, 
     s.block_kmax[b] = km;
     kmax = std::max(kmax, km);
   }
-  if (kmax == 0) return;  // no entry contributes to any pixel: all slots stay 0
+  // Entries from kmax on contribute to no pixel.
+  std::fill(entry_grad + static_cast<size_t>(kmax) * K, entry_grad + static_cast<size_t>(n) * K, 0.0f);
+  if (kmax == 0) return;
   s.reserve(kmax, C, box.h);
   s.gather(in, geo, lo, 0, kmax);
 
@@ -1015,13 +1017,13 @@ RM_INLINE void backward_tile_impl(const Inputs& in, const Geometry& geo, int t, 
       }
     }
   }
-  // Lane sums in a fixed order (entries from kmax on have none).
+  // Lane sums in a fixed order.
   float v[kLanes];
   for (size_t j = 0; j < static_cast<size_t>(kmax) * K; ++j) {
     store_lanes(v, sums[j]);
     float total = 0.0f;
     for (int l = 0; l < kLanes; ++l) total += v[l];
-    entry_grad[j] += total;
+    entry_grad[j] = total;
   }
 }
 
@@ -1244,9 +1246,7 @@ void accumulate_entries(Inputs in, const Geometry& geo, int num_threads, const B
     const int c = chunk_of[t];
     while (summed.load(std::memory_order_acquire) < c - 1)  // chunk c - 2 still holds the buffer
       if (id != 0 || !sum_ready()) std::this_thread::yield();
-    float* own = buffer_of(c) + (ranges[t] - ranges[chunk_start[c]]) * K;
-    std::fill(own, own + (ranges[t + 1] - ranges[t]) * K, 0.0f);
-    backward_tile(in, geo, t, scratch[id], bw, own);
+    backward_tile(in, geo, t, scratch[id], bw, buffer_of(c) + (ranges[t] - ranges[chunk_start[c]]) * K);
     tiles_left[c].fetch_sub(1, std::memory_order_acq_rel);
     if (id == 0) sum_ready();
   });
