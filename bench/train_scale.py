@@ -116,6 +116,7 @@ def _profile(trainer, camera, target, threads: list, repeats: int) -> dict:
     from mlx3d.render.projection import project_ewa
     from mlx3d.render.rasterize import composite
     from mlx3d.render.sh_color import sh_colors
+    from mlx3d.training.adam import all_finite
     from mlx3d.training.metrics import photometric_loss
 
     p = trainer.model.params
@@ -164,11 +165,10 @@ def _profile(trainer, camera, target, threads: list, repeats: int) -> dict:
 
     grads = {k: cot(v) for k, v in p.items()}
 
-    def adam():
-        saved = (dict(trainer.optimizer.m), dict(trainer.optimizer.v), trainer.optimizer.step_count)
-        new = trainer.optimizer.update(p, grads)
+    def adam():  # the finiteness check that gates the update, and the update (the moments drift; the step count does not)
+        new = trainer.optimizer.update(p, grads, apply=all_finite(grads.values()))
         mx.eval(new, trainer.optimizer.m, trainer.optimizer.v)
-        trainer.optimizer.m, trainer.optimizer.v, trainer.optimizer.step_count = saved
+        trainer.optimizer.rewind()
 
     grad2d = cot(proj.means2d)
     mx.eval(grad2d)

@@ -105,27 +105,67 @@ def test_fused_adam_matches_the_mlx_expression_for_any_thread_count():
 
 
 @pytest.mark.parametrize("backend", ["cpu", "reference"])
-def test_adam_reports_a_non_finite_gradient_and_restores_its_state(backend):
-    # one bad entry anywhere (a big array split over threads, an unupdated name too) clears the flag,
-    # agreeing with numpy's isfinite; restore() puts the moments and the step count back
+def test_adam_gated_by_all_finite_changes_nothing_on_a_non_finite_gradient(backend):
+    # one bad entry anywhere (a big array split over threads, an unupdated name too) makes all_finite
+    # False, agreeing with numpy's isfinite; the gated update then returns the old parameters and leaves
+    # the moments as they were, bit for bit, and rewind() takes back the step count
+    from mlx3d.training.adam import all_finite
+
     rng = np.random.default_rng(8)
     shapes = {"means": (200_003, 3), "opacities": (200_003,), "frozen": (7,)}
     params = {k: mx.array(rng.normal(size=s).astype(np.float32)) for k, s in shapes.items()}
     opt = Adam({"means": 1e-3, "opacities": 5e-2}, backend=backend)
     good = {k: mx.array(rng.normal(size=s).astype(np.float32)) for k, s in shapes.items()}
-    params, ok = opt.update_checked(params, good)
+    ok = all_finite(good.values(), backend)
+    params = opt.update(params, good, apply=ok)
+    mx.eval(params, opt.m, opt.v)
     assert bool(ok)
-    saved = opt.checkpoint()
-    m_before = {k: np.array(v) for k, v in opt.m.items()}
+    p_before = {k: np.array(v) for k, v in params.items()}
+    m_before = {k: np.array(v) for k, v in list(opt.m.items()) + [("v/" + k, v) for k, v in opt.v.items()]}
     for name, where, value in [("means", (199_999, 2), np.nan), ("means", (3, 0), np.inf), ("opacities", (150_000,), -np.inf), ("frozen", (6,), np.nan)]:
         bad = {k: np.array(v) for k, v in good.items()}
         bad[name][where] = value
-        _, ok = opt.update_checked(params, {k: mx.array(v) for k, v in bad.items()})
+        ok = all_finite([mx.array(v) for v in bad.values()], backend)
+        new = opt.update(params, {k: mx.array(v) for k, v in bad.items()}, apply=ok)
+        mx.eval(new, opt.m, opt.v, ok)
         assert bool(ok) == all(np.isfinite(v).all() for v in bad.values()) == False  # noqa: E712
-        opt.restore(saved)
+        opt.rewind()
         assert opt.step_count == 1
-        for k, v in opt.m.items():
+        for k, v in new.items():
+            np.testing.assert_array_equal(np.array(v), p_before[k])
+        for k, v in list(opt.m.items()) + [("v/" + k, v) for k, v in opt.v.items()]:
             np.testing.assert_array_equal(np.array(v), m_before[k])
+
+
+def _address(a: mx.array) -> int:
+    return np.asarray(a).__array_interface__["data"][0]
+
+
+def test_cpu_adam_writes_the_moments_in_place_but_never_under_a_view():
+    # the kernel reuses the old moments' memory (no fresh pages per step); an array that shares that
+    # memory (a view taken from the moments) keeps its values, and the results agree with the MLX expression
+    rng = np.random.default_rng(9)
+    shape = (100_003, 3)
+    params = {"x": mx.array(rng.normal(size=shape).astype(np.float32))}
+    opt, ref = Adam({"x": 1e-2}, backend="cpu"), Adam({"x": 1e-2}, backend="reference")
+    p, pr = dict(params), dict(params)
+    grads = [{"x": mx.array(rng.normal(size=shape).astype(np.float32))} for _ in range(4)]
+    for t, g in enumerate(grads):
+        before = {k: _address(d["x"]) for k, d in (("m", opt.m), ("v", opt.v))} if opt.m else None
+        if t == 3:
+            view = opt.m["x"].reshape(-1)
+            mx.eval(view)
+            held = np.array(view)
+        p, pr = opt.update(p, g), ref.update(pr, g)
+        mx.eval(p, pr, opt.m, opt.v, ref.m, ref.v)
+        if t in (1, 2):
+            assert _address(opt.m["x"]) == before["m"] and _address(opt.v["x"]) == before["v"]
+        if t == 3:
+            assert _address(opt.m["x"]) != before["m"] and _address(opt.v["x"]) == before["v"]
+            np.testing.assert_array_equal(np.array(view), held)
+        for mine, theirs in ((opt.m, ref.m), (opt.v, ref.v)):  # float32 rounding of the same formula
+            np.testing.assert_allclose(np.array(mine["x"]), np.array(theirs["x"]), rtol=1e-6, atol=0)
+        np.testing.assert_allclose(np.array(p["x"]), np.array(pr["x"]), rtol=1e-6, atol=1e-8)
 
 
 # ------------------------------------------------------------------ density control

@@ -12,13 +12,24 @@ import mlx.core as mx
 import numpy as np
 
 
-def all_finite(arrays) -> mx.array:
-    """A bool scalar: True when no element of any array is NaN or infinite.
+def all_finite(arrays, backend: str = "auto") -> mx.array:
+    """A lazy bool scalar: True when no element of any array is NaN or infinite.
 
-    x * 0 is exactly 0 where x is finite and NaN where x is NaN or infinite, so the sum of
-    those products is 0 exactly when everything is finite (two passes per array; mx.isfinite
-    and mx.all take several). Lazy: evaluate it with the arrays.
+    On the CPU a threaded primitive reads each array once (its exponent bits).
+    Elsewhere x * 0 is exactly 0 where x is finite and NaN where x is NaN or
+    infinite, so the sum of those products is 0 exactly when everything is finite.
     """
+    from ..render.rasterize import resolve_backend
+
+    arrays = list(arrays)
+    if not arrays:
+        return mx.array(True)
+    if resolve_backend(backend) == "cpu":
+        from mlx3d import native
+
+        from ..render.raster_cpu import get_num_threads
+
+        return native.core().all_finite(arrays, get_num_threads())
     return mx.sum(mx.stack([mx.sum(a * 0) for a in arrays])) == 0
 
 
@@ -28,6 +39,11 @@ class Adam:
     betas and eps as in 3DGS (0.9, 0.999, 1e-15). ``lrs`` maps each parameter
     name to its learning rate; a name missing from ``lrs`` (or with lr 0) is
     not updated.
+
+    The moments ``m`` and ``v`` (dicts of arrays, one per name) belong to the
+    optimizer: on the CPU, ``update`` writes the new moments into the old ones'
+    memory, so an array taken from ``m`` or ``v`` changes with the next update
+    once evaluated. ``state_dict()`` gives copies.
     """
 
     def __init__(self, lrs: dict, betas=(0.9, 0.999), eps: float = 1e-15, backend: str = "auto"):
@@ -42,54 +58,46 @@ class Adam:
         # 'cpu': one threaded pass per parameter (mlx3d._core.adam_step); else the MLX expression below
         self.backend = resolve_backend(backend)
 
-    def update(self, params: dict, grads: dict) -> dict:
-        """New params after one step (moments are created on first use)."""
-        return self.update_checked(params, grads)[0]
+    def update(self, params: dict, grads: dict, apply: mx.array | None = None) -> dict:
+        """New params after one step (moments are created on first use).
 
-    def update_checked(self, params: dict, grads: dict) -> tuple[dict, mx.array]:
-        """``update``, and a lazy bool scalar: True when every entry of every gradient is finite.
-
-        The CPU kernel finds it in its update pass. When it is False, the new
-        parameters and moments are garbage: put back the state saved by
-        ``checkpoint()`` with ``restore``.
+        ``apply``: a (lazy) bool scalar, e.g. ``all_finite`` of the loss and
+        the gradients. Where it is False the step changes nothing: the params
+        returned and the moments are the old ones, bit for bit; call
+        ``rewind()`` to take back the step count.
         """
         self.step_count += 1
         c1 = 1.0 - self.b1**self.step_count
         c2 = 1.0 - self.b2**self.step_count
+        ok = mx.array(True) if apply is None else apply
         out = dict(params)
-        finite, unchecked = [], []
         for name, g in grads.items():
             lr = self.lrs.get(name, 0.0)
             if not lr:
-                unchecked.append(g)
                 continue
+            p = params[name]
             m = self.m.get(name, mx.zeros_like(g))
             v = self.v.get(name, mx.zeros_like(g))
-            if self.backend == "cpu" and params[name].dtype == g.dtype == m.dtype == mx.float32:
+            if self.backend == "cpu" and p.dtype == g.dtype == m.dtype == mx.float32:
                 from mlx3d import native
 
                 from ..render.raster_cpu import get_num_threads
 
-                out[name], m, v, ok = native.core().adam_step(params[name], g, m, v, lr, self.b1, self.b2, self.eps, c1, c2, get_num_threads())
-                finite.append(ok)
+                out[name], m, v = native.core().adam_step(p, g, m, v, ok, lr, self.b1, self.b2, self.eps, c1, c2, get_num_threads())
             else:
-                m = self.b1 * m + (1 - self.b1) * g
-                v = self.b2 * v + (1 - self.b2) * g * g
-                out[name] = params[name] - lr * (m / c1) / (mx.sqrt(v / c2) + self.eps)
-                unchecked.append(g)
+                m_new = self.b1 * m + (1 - self.b1) * g
+                v_new = self.b2 * v + (1 - self.b2) * g * g
+                p_new = p - lr * (m_new / c1) / (mx.sqrt(v_new / c2) + self.eps)
+                if apply is None:
+                    out[name], m, v = p_new, m_new, v_new
+                else:
+                    out[name], m, v = mx.where(ok, p_new, p), mx.where(ok, m_new, m), mx.where(ok, v_new, v)
             self.m[name], self.v[name] = m, v
-        if unchecked:
-            finite.append(all_finite(unchecked))
-        return out, mx.all(mx.stack(finite)) if finite else mx.array(True)
+        return out
 
-    def checkpoint(self) -> tuple:
-        """The moments and step count as they are now (references, no copies), for ``restore``."""
-        return dict(self.m), dict(self.v), self.step_count
-
-    def restore(self, saved: tuple) -> None:
-        """Undo the updates made since ``checkpoint()`` returned ``saved``."""
-        m, v, self.step_count = saved
-        self.m, self.v = dict(m), dict(v)
+    def rewind(self) -> None:
+        """Take back the step count of the last ``update``, whose ``apply`` was False."""
+        self.step_count -= 1
 
     def select(self, keep: np.ndarray) -> None:
         """Keep moment rows ``keep`` (indices) for every parameter."""

@@ -326,15 +326,14 @@ class GaussianTrainer:
         grid_in = self.grid_optimizer.current(self.bilateral, image_index) if use_grid else mx.zeros((1,))
         (loss, out), (grads, grad2d, grad_grid) = mx.value_and_grad(loss_fn, argnums=(0, 1, 2))(params, mx.zeros((n, 2)), grid_in)
         self.optimizer.lrs = self.learning_rates()
-        saved = self.optimizer.checkpoint()
-        new_params, finite = self.optimizer.update_checked(params, grads)  # the kernel checks the gradients as it goes
-        if use_grid:
-            finite = finite & all_finite([grad_grid])
+        # the update applies only when the loss and every gradient are finite (one read of each, before it)
+        finite = all_finite([loss, *grads.values()] + ([grad_grid] if use_grid else []), r.backend)
+        new_params = self.optimizer.update(params, grads, apply=finite)
         quality = psnr(mx.clip(out["image"], 0, 1), target, mask)
         mx.eval(loss, new_params, self.optimizer.m, self.optimizer.v, grad2d, grad_grid, finite, quality, out["visible"], out["radii"])
         loss_value = float(loss)
-        if not math.isfinite(loss_value) or not bool(finite):
-            self.optimizer.restore(saved)
+        if not bool(finite):
+            self.optimizer.rewind()
             raise TrainingError(f"step {self.step_count + 1}: the loss or a gradient is not finite (loss {loss_value}); parameters left at the last good step")
 
         ran = out["ran"] + ["adam"]
