@@ -285,18 +285,19 @@ def test_nan_guard_keeps_the_last_good_parameters():
     assert trainer.optimizer.step_count == 1 and trainer.step(cams[2], targets[2])["step"] == 2
 
 
-def test_all_finite_agrees_with_numpy_isfinite():
+@pytest.mark.parametrize("backend", ["cpu", "reference"])
+def test_all_finite_agrees_with_numpy_isfinite(backend):
     from mlx3d.training.adam import all_finite
 
     rng = np.random.default_rng(5)
     base = [rng.normal(size=(1000, 3)).astype(np.float32), rng.normal(size=(200, 15, 3)).astype(np.float32)]
     base[0][:10] = 3e38  # finite values whose sum overflows float32
-    assert bool(all_finite([mx.array(a) for a in base]))
+    assert bool(all_finite([mx.array(a) for a in base], backend)) and bool(all_finite([], backend))
     for bad in (np.nan, np.inf, -np.inf):
         for which in range(2):
             arrays = [a.copy() for a in base]
             arrays[which].flat[rng.integers(arrays[which].size)] = bad
-            assert bool(all_finite([mx.array(a) for a in arrays])) == all(np.isfinite(a).all() for a in arrays) == False  # noqa: E712
+            assert bool(all_finite([mx.array(a) for a in arrays], backend)) == all(np.isfinite(a).all() for a in arrays) == False  # noqa: E712
 
 
 def test_checkpoint_resume_is_exact(tmp_path):
