@@ -165,10 +165,10 @@ def _profile(trainer, camera, target, threads: list, repeats: int) -> dict:
 
     grads = {k: cot(v) for k, v in p.items()}
 
-    def adam():  # the finiteness check that gates the update, and the update (the moments drift; the step count does not)
-        new = trainer.optimizer.update(p, grads, apply=all_finite(grads.values()))
-        mx.eval(new, trainer.optimizer.m, trainer.optimizer.v)
-        trainer.optimizer.rewind()
+    def adam():  # the finiteness check, then the update (moments drift; p stays held here, so p' is fresh, unlike in the step)
+        mx.eval(all_finite(grads.values()))
+        mx.eval(trainer.optimizer.update(p, grads), trainer.optimizer.m, trainer.optimizer.v)
+        trainer.optimizer.step_count -= 1
 
     grad2d = cot(proj.means2d)
     mx.eval(grad2d)

@@ -1,17 +1,18 @@
-// One Adam step on a parameter array as a CPU MLX primitive, and the finiteness check that gates it.
+// One Adam step on a parameter array as CPU MLX primitives, and the finiteness check that gates it.
 //
 //   m' = b1 m + (1 - b1) g;  v' = b2 v + (1 - b2) g²;  p' = p - lr (m' / c1) / (sqrt(v' / c2) + eps)
 //
-// with the bias corrections c1 = 1 - b1^t, c2 = 1 - b2^t given by the caller, in one threaded pass that
-// reads p, g, m, v. Elementwise, so results do not depend on the thread count. The step applies only when
-// its `apply` input (a bool scalar, e.g. AllFinite of the loss and every gradient) is true; otherwise p', m'
-// and v' are p, m and v, bit for bit.
+// with the bias corrections c1 = 1 - b1^t, c2 = 1 - b2^t given by the caller: AdamMoments (m', v') then
+// AdamParam (p'), threaded passes over the elements, so results do not depend on the thread count.
+// AllFinite checks a step's loss and gradients first (the trainer updates only when they are finite).
 //
-// The moments are written in place: m' and v' take over the buffers of m and v, unless another array
-// shares a buffer (a view of it), when they get fresh ones. A fresh buffer costs a page fault and zeroing
-// per 4 KB page on first touch (writing 236 MB of fresh pages took 170-210 ms here, against 40 ms for
-// memory already touched), and the old and new moments no longer coexist (472 MB at 1M Gaussians). So the
-// optimizer that owns m and v must drop them for m' and v' (mlx3d.training.adam.Adam does).
+// The outputs are written over their inputs where that is safe: m' and v' over m and v unless another
+// array shares their buffer (a view), p' over p when MLX may donate it (nothing else holds p). A fresh
+// buffer costs a page fault and zeroing per 4 KB page on first touch (writing 236 MB of fresh pages took
+// 170-210 ms here, against 40 ms for memory already touched), and the old and new arrays then coexist
+// (3 x 236 MB at 1M Gaussians). So the optimizer that owns m and v must drop them for m' and v'
+// (mlx3d.training.adam.Adam does), and the trainer drops its parameters before evaluating the update
+// (after the step's gradients, whose graph holds them).
 #include <nanobind/nanobind.h>
 #include <nanobind/stl/vector.h>
 
@@ -50,18 +51,22 @@ inline bool non_finite(float x) {
   return (bits & 0x7f800000u) == 0x7f800000u;
 }
 
-// m_out, v_out may be m, v (in place): each element is read before it is written.
-void run_adam(const float* p, const float* g, const float* m, const float* v, float* p_out, float* m_out, float* v_out,
-              int64_t n, AdamScalars s, int num_threads) {
+// The moments: m_out, v_out may be m, v (in place); each element is read before it is written.
+void run_moments(const float* g, const float* m, const float* v, float* m_out, float* v_out, int64_t n, AdamScalars s,
+                 int num_threads) {
   parallel_ranges(n, num_threads, kBlock, [=](int64_t lo, int64_t hi) {
     for (int64_t i = lo; i < hi; ++i) {
       const float gi = g[i];
-      const float mi = s.b1 * m[i] + s.one_minus_b1 * gi;
-      const float vi = s.b2 * v[i] + s.one_minus_b2 * (gi * gi);
-      m_out[i] = mi;
-      v_out[i] = vi;
-      p_out[i] = p[i] - (s.lr * (mi / s.c1)) / (std::sqrt(vi / s.c2) + s.eps);
+      m_out[i] = s.b1 * m[i] + s.one_minus_b1 * gi;
+      v_out[i] = s.b2 * v[i] + s.one_minus_b2 * (gi * gi);
     }
+  });
+}
+
+// The parameters from the new moments: p_out may be p.
+void run_param(const float* p, const float* m, const float* v, float* p_out, int64_t n, AdamScalars s, int num_threads) {
+  parallel_ranges(n, num_threads, kBlock, [=](int64_t lo, int64_t hi) {
+    for (int64_t i = lo; i < hi; ++i) p_out[i] = p[i] - (s.lr * (m[i] / s.c1)) / (std::sqrt(v[i] / s.c2) + s.eps);
   });
 }
 
@@ -75,65 +80,86 @@ bool writable_in_place(const std::vector<mx::array>& inputs, int k) {
          a.data_size() == a.size();
 }
 
-class AdamStep : public CpuPrimitive {
- public:
-  AdamStep(mx::Stream stream, AdamScalars s, int num_threads)
-      : CpuPrimitive(stream, "Apple GPUs use the MLX expression in mlx3d.training.adam"), s_(s), num_threads_(num_threads) {}
-
-  // inputs: p, g, m, v, apply (bool scalar); outputs: p', m', v'
-  void eval_cpu(const std::vector<mx::array>& inputs, std::vector<mx::array>& outputs) override {
-    for (const auto& a : inputs)
-      if (!a.flags().row_contiguous) throw std::runtime_error("AdamStep: internal error: non-contiguous input");
-    outputs[0].set_data(mx::allocator::malloc(outputs[0].nbytes()));
-    for (int k = 1; k < 3; ++k) {
-      if (writable_in_place(inputs, k + 1))
-        outputs[k].copy_shared_buffer(inputs[k + 1]);
-      else
-        outputs[k].set_data(mx::allocator::malloc(outputs[k].nbytes()));
-    }
-    auto& encoder = mx::cpu::get_command_encoder(stream());
-    for (const auto& a : inputs) encoder.set_input_array(a);
-    for (auto& o : outputs) encoder.set_output_array(o);
-    const float *p = inputs[0].data<float>(), *g = inputs[1].data<float>(), *m = inputs[2].data<float>(), *v = inputs[3].data<float>();
-    const bool* apply = inputs[4].data<bool>();  // read when the task runs, after the inputs are computed
-    float *po = outputs[0].data<float>(), *mo = outputs[1].data<float>(), *vo = outputs[2].data<float>();
-    const int64_t n = inputs[0].size();
-    encoder.dispatch([=, s = s_, threads = num_threads_]() {
-      if (*apply) {
-        run_adam(p, g, m, v, po, mo, vo, n, s, threads);
-        return;
-      }
-      const size_t bytes = static_cast<size_t>(n) * sizeof(float);  // nothing changes
-      std::memcpy(po, p, bytes);
-      if (mo != m) std::memcpy(mo, m, bytes);
-      if (vo != v) std::memcpy(vo, v, bytes);
-    });
+// Output `out` over input k's buffer where it may be written in place (`in_place`), else a fresh buffer;
+// returns whether it is in place.
+bool output_over(const std::vector<mx::array>& inputs, int k, bool in_place, mx::array& out) {
+  if (in_place) {
+    out.copy_shared_buffer(inputs[k]);
+    return true;
   }
+  out.set_data(mx::allocator::malloc(out.nbytes()));
+  return false;
+}
+
+class AdamBase : public CpuPrimitive {
+ public:
+  AdamBase(mx::Stream stream, AdamScalars s, int num_threads)
+      : CpuPrimitive(stream, "Apple GPUs use the MLX expression in mlx3d.training.adam"), s_(s), num_threads_(num_threads) {}
 
   std::vector<mx::array> vjp(const std::vector<mx::array>&, const std::vector<mx::array>&, const std::vector<int>&,
                              const std::vector<mx::array>&) override {
-    throw std::runtime_error("AdamStep is an optimizer update and has no gradient.");
+    throw std::runtime_error(std::string(name()) + " is an optimizer update and has no gradient.");
   }
-
-  std::vector<mx::array> jvp(const std::vector<mx::array>&, const std::vector<mx::array>&, const std::vector<int>&) override {
-    throw std::runtime_error("AdamStep is an optimizer update and has no gradient.");
-  }
-
-  std::vector<mx::Shape> output_shapes(const std::vector<mx::array>& inputs) override {
-    return {inputs[0].shape(), inputs[0].shape(), inputs[0].shape()};
-  }
-
-  const char* name() const override { return "AdamStep"; }
 
   bool is_equivalent(const mx::Primitive& other) const override {
-    const auto* o = dynamic_cast<const AdamStep*>(&other);
-    return o && o->num_threads_ == num_threads_ && o->s_.lr == s_.lr && o->s_.b1 == s_.b1 && o->s_.b2 == s_.b2 &&
-           o->s_.eps == s_.eps && o->s_.c1 == s_.c1 && o->s_.c2 == s_.c2;
+    const auto* o = dynamic_cast<const AdamBase*>(&other);
+    return o && std::string(o->name()) == name() && o->num_threads_ == num_threads_ && o->s_.lr == s_.lr &&
+           o->s_.b1 == s_.b1 && o->s_.b2 == s_.b2 && o->s_.eps == s_.eps && o->s_.c1 == s_.c1 && o->s_.c2 == s_.c2;
   }
 
- private:
+ protected:
+  // Checks the inputs, registers them and the outputs (allocated by the caller) with the encoder.
+  mx::cpu::CommandEncoder& encoder_for(const std::vector<mx::array>& inputs, std::vector<mx::array>& outputs) {
+    for (const auto& a : inputs)
+      if (!a.flags().row_contiguous) throw std::runtime_error(std::string(name()) + ": internal error: non-contiguous input");
+    auto& encoder = mx::cpu::get_command_encoder(stream());
+    for (const auto& a : inputs) encoder.set_input_array(a);
+    for (auto& o : outputs) encoder.set_output_array(o);
+    return encoder;
+  }
+
   AdamScalars s_;
   int num_threads_;
+};
+
+// inputs: g, m, v; outputs: m', v', over m and v where writable_in_place.
+class AdamMoments : public AdamBase {
+ public:
+  using AdamBase::AdamBase;
+
+  void eval_cpu(const std::vector<mx::array>& inputs, std::vector<mx::array>& outputs) override {
+    output_over(inputs, 1, writable_in_place(inputs, 1), outputs[0]);
+    output_over(inputs, 2, writable_in_place(inputs, 2), outputs[1]);
+    auto& encoder = encoder_for(inputs, outputs);
+    const float *g = inputs[0].data<float>(), *m = inputs[1].data<float>(), *v = inputs[2].data<float>();
+    float *mo = outputs[0].data<float>(), *vo = outputs[1].data<float>();
+    const int64_t n = inputs[0].size();
+    encoder.dispatch([=, s = s_, threads = num_threads_]() { run_moments(g, m, v, mo, vo, n, s, threads); });
+  }
+
+  std::vector<mx::Shape> output_shapes(const std::vector<mx::array>& inputs) override { return {inputs[0].shape(), inputs[0].shape()}; }
+
+  const char* name() const override { return "AdamMoments"; }
+};
+
+// inputs: p, m', v'; output: p', over p when MLX may donate it (nothing else holds p).
+class AdamParam : public AdamBase {
+ public:
+  using AdamBase::AdamBase;
+
+  void eval_cpu(const std::vector<mx::array>& inputs, std::vector<mx::array>& outputs) override {
+    const mx::array& p = inputs[0];
+    output_over(inputs, 0, p.is_donatable() && writable_in_place(inputs, 0), outputs[0]);
+    auto& encoder = encoder_for(inputs, outputs);
+    const float *pp = p.data<float>(), *m = inputs[1].data<float>(), *v = inputs[2].data<float>();
+    float* po = outputs[0].data<float>();
+    const int64_t n = p.size();
+    encoder.dispatch([=, s = s_, threads = num_threads_]() { run_param(pp, m, v, po, n, s, threads); });
+  }
+
+  std::vector<mx::Shape> output_shapes(const std::vector<mx::array>& inputs) override { return {inputs[0].shape()}; }
+
+  const char* name() const override { return "AdamParam"; }
 };
 
 // A bool scalar: true when no element of any (float32) input is NaN or infinite. One threaded pass per
@@ -179,25 +205,23 @@ class AllFinite : public CpuPrimitive {
   int num_threads_;
 };
 
-std::vector<mx::array> adam_step(const mx::array& p, const mx::array& g, const mx::array& m, const mx::array& v,
-                                 const mx::array& apply, double lr, double b1, double b2, double eps, double c1, double c2,
+std::vector<mx::array> adam_step(const mx::array& p, const mx::array& g, const mx::array& m, const mx::array& v, double lr, double b1, double b2, double eps, double c1, double c2,
                                  int num_threads) {
   for (const auto* a : {&g, &m, &v})
     if (a->shape() != p.shape())
       throw std::invalid_argument("adam_step: p, g, m and v must have the same shape, got " + shape_str(p) + " and " + shape_str(*a));
   for (const auto* a : {&p, &g, &m, &v})
     if (a->dtype() != mx::float32) throw std::invalid_argument("adam_step: arrays must be float32");
-  if (apply.dtype() != mx::bool_ || apply.ndim() != 0) throw std::invalid_argument("adam_step: apply must be a bool scalar");
   if (!(c1 > 0) || !(c2 > 0)) throw std::invalid_argument("adam_step: bias corrections c1, c2 must be > 0");
   if (num_threads < 0) throw std::invalid_argument("adam_step: num_threads must be >= 0 (0 = all cores)");
   // the scalars as float32, as MLX rounds Python scalars that meet a float32 array
   const AdamScalars s{float(lr), float(b1), float(1.0 - b1), float(b2), float(1.0 - b2), float(eps), float(c1), float(c2)};
   auto st = mx::default_stream(mx::Device::cpu);
-  std::vector<mx::array> inputs;
-  for (const auto* a : {&p, &g, &m, &v}) inputs.push_back(mx::contiguous(*a, false, st));
-  inputs.push_back(apply);
-  return mx::array::make_arrays({p.shape(), p.shape(), p.shape()}, {mx::float32, mx::float32, mx::float32},
-                                std::make_shared<AdamStep>(st, s, num_threads), inputs);
+  auto c = [&](const mx::array& a) { return mx::contiguous(a, false, st); };
+  std::vector<mx::array> moments = mx::array::make_arrays({p.shape(), p.shape()}, {mx::float32, mx::float32},
+                                                          std::make_shared<AdamMoments>(st, s, num_threads), {c(g), c(m), c(v)});
+  mx::array p_new(p.shape(), mx::float32, std::make_shared<AdamParam>(st, s, num_threads), {c(p), moments[0], moments[1]});
+  return {p_new, moments[0], moments[1]};
 }
 
 mx::array all_finite(const std::vector<mx::array>& arrays, int num_threads) {
@@ -212,12 +236,11 @@ mx::array all_finite(const std::vector<mx::array>& arrays, int num_threads) {
 }  // namespace
 
 void bind_adam(nb::module_& m) {
-  m.def("adam_step", &adam_step, "p"_a, "g"_a, "m"_a, "v"_a, "apply"_a, "lr"_a, "b1"_a, "b2"_a, "eps"_a, "c1"_a, "c2"_a,
+  m.def("adam_step", &adam_step, "p"_a, "g"_a, "m"_a, "v"_a, "lr"_a, "b1"_a, "b2"_a, "eps"_a, "c1"_a, "c2"_a,
         "num_threads"_a = 0,
-        "One Adam step on float32 arrays of one shape: returns [p', m', v'] (MLX primitive, CPU, threaded).\n"
-        "apply: a bool scalar; when False the outputs are p, m, v unchanged. m' and v' take over the buffers of\n"
-        "m and v unless another array shares them. c1, c2: the bias corrections 1 - b1^t, 1 - b2^t.\n"
-        "Used by mlx3d.training.adam.Adam.");
+        "One Adam step on float32 arrays of one shape: returns [p', m', v'] (MLX primitives, CPU, threaded).\n"
+        "m' and v' take over the buffers of m and v unless another array shares them, p' that of p when nothing\n"
+        "else holds p. c1, c2: the bias corrections 1 - b1^t, 1 - b2^t. Used by mlx3d.training.adam.Adam.");
   m.def("all_finite", &all_finite, "arrays"_a, "num_threads"_a = 0,
         "A bool scalar (MLX primitive, CPU, threaded): True when no element of any array is NaN or infinite.");
 }

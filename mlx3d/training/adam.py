@@ -43,7 +43,7 @@ class Adam:
     The moments ``m`` and ``v`` (dicts of arrays, one per name) belong to the
     optimizer: on the CPU, ``update`` writes the new moments into the old ones'
     memory, so an array taken from ``m`` or ``v`` changes with the next update
-    once evaluated. ``state_dict()`` gives copies.
+    once evaluated (a view taken of it does not). ``state_dict()`` gives copies.
     """
 
     def __init__(self, lrs: dict, betas=(0.9, 0.999), eps: float = 1e-15, backend: str = "auto"):
@@ -58,18 +58,16 @@ class Adam:
         # 'cpu': one threaded pass per parameter (mlx3d._core.adam_step); else the MLX expression below
         self.backend = resolve_backend(backend)
 
-    def update(self, params: dict, grads: dict, apply: mx.array | None = None) -> dict:
+    def update(self, params: dict, grads: dict) -> dict:
         """New params after one step (moments are created on first use).
 
-        ``apply``: a (lazy) bool scalar, e.g. ``all_finite`` of the loss and
-        the gradients. Where it is False the step changes nothing: the params
-        returned and the moments are the old ones, bit for bit; call
-        ``rewind()`` to take back the step count.
+        On the CPU the new moments are written over the old ones, and each new
+        parameter over the old one when nothing else holds it (drop your
+        references to ``params`` before evaluating, as the trainer does).
         """
         self.step_count += 1
         c1 = 1.0 - self.b1**self.step_count
         c2 = 1.0 - self.b2**self.step_count
-        ok = mx.array(True) if apply is None else apply
         out = dict(params)
         for name, g in grads.items():
             lr = self.lrs.get(name, 0.0)
@@ -83,21 +81,13 @@ class Adam:
 
                 from ..render.raster_cpu import get_num_threads
 
-                out[name], m, v = native.core().adam_step(p, g, m, v, ok, lr, self.b1, self.b2, self.eps, c1, c2, get_num_threads())
+                out[name], m, v = native.core().adam_step(p, g, m, v, lr, self.b1, self.b2, self.eps, c1, c2, get_num_threads())
             else:
-                m_new = self.b1 * m + (1 - self.b1) * g
-                v_new = self.b2 * v + (1 - self.b2) * g * g
-                p_new = p - lr * (m_new / c1) / (mx.sqrt(v_new / c2) + self.eps)
-                if apply is None:
-                    out[name], m, v = p_new, m_new, v_new
-                else:
-                    out[name], m, v = mx.where(ok, p_new, p), mx.where(ok, m_new, m), mx.where(ok, v_new, v)
+                m = self.b1 * m + (1 - self.b1) * g
+                v = self.b2 * v + (1 - self.b2) * g * g
+                out[name] = p - lr * (m / c1) / (mx.sqrt(v / c2) + self.eps)
             self.m[name], self.v[name] = m, v
         return out
-
-    def rewind(self) -> None:
-        """Take back the step count of the last ``update``, whose ``apply`` was False."""
-        self.step_count -= 1
 
     def select(self, keep: np.ndarray) -> None:
         """Keep moment rows ``keep`` (indices) for every parameter."""

@@ -326,18 +326,19 @@ class GaussianTrainer:
         grid_in = self.grid_optimizer.current(self.bilateral, image_index) if use_grid else mx.zeros((1,))
         (loss, out), (grads, grad2d, grad_grid) = mx.value_and_grad(loss_fn, argnums=(0, 1, 2))(params, mx.zeros((n, 2)), grid_in)
         self.optimizer.lrs = self.learning_rates()
-        # the update applies only when the loss and every gradient are finite (one read of each, before it)
         finite = all_finite([loss, *grads.values()] + ([grad_grid] if use_grid else []), r.backend)
-        new_params = self.optimizer.update(params, grads, apply=finite)
         quality = psnr(mx.clip(out["image"], 0, 1), target, mask)
-        mx.eval(loss, new_params, self.optimizer.m, self.optimizer.v, grad2d, grad_grid, finite, quality, out["visible"], out["radii"])
+        mx.eval(loss, grads, grad2d, grad_grid, finite, quality, out["visible"], out["radii"])
         loss_value = float(loss)
         if not bool(finite):
-            self.optimizer.rewind()
             raise TrainingError(f"step {self.step_count + 1}: the loss or a gradient is not finite (loss {loss_value}); parameters left at the last good step")
+        # Evaluated apart from the gradients, whose graph holds the old parameters, and with nothing here
+        # holding them: Adam then writes the new parameters and moments over the old ones' memory.
+        self.model.params = self.optimizer.update(params, grads)
+        del params
+        mx.eval(self.model.params, self.optimizer.m, self.optimizer.v)
 
         ran = out["ran"] + ["adam"]
-        self.model.params = new_params
         if use_grid:
             self.grid_optimizer.update(self.bilateral, image_index, grad_grid)
         if "thickness_clamp" in plan.after_step:
