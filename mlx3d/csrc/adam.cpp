@@ -80,15 +80,12 @@ bool writable_in_place(const std::vector<mx::array>& inputs, int k) {
          a.data_size() == a.size();
 }
 
-// Output `out` over input k's buffer where it may be written in place (`in_place`), else a fresh buffer;
-// returns whether it is in place.
-bool output_over(const std::vector<mx::array>& inputs, int k, bool in_place, mx::array& out) {
-  if (in_place) {
+// Output `out` over input k's buffer where it may be written there (`in_place`), else a fresh buffer.
+void output_over(const std::vector<mx::array>& inputs, int k, bool in_place, mx::array& out) {
+  if (in_place)
     out.copy_shared_buffer(inputs[k]);
-    return true;
-  }
-  out.set_data(mx::allocator::malloc(out.nbytes()));
-  return false;
+  else
+    out.set_data(mx::allocator::malloc(out.nbytes()));
 }
 
 class AdamBase : public CpuPrimitive {
@@ -108,16 +105,6 @@ class AdamBase : public CpuPrimitive {
   }
 
  protected:
-  // Checks the inputs, registers them and the outputs (allocated by the caller) with the encoder.
-  mx::cpu::CommandEncoder& encoder_for(const std::vector<mx::array>& inputs, std::vector<mx::array>& outputs) {
-    for (const auto& a : inputs)
-      if (!a.flags().row_contiguous) throw std::runtime_error(std::string(name()) + ": internal error: non-contiguous input");
-    auto& encoder = mx::cpu::get_command_encoder(stream());
-    for (const auto& a : inputs) encoder.set_input_array(a);
-    for (auto& o : outputs) encoder.set_output_array(o);
-    return encoder;
-  }
-
   AdamScalars s_;
   int num_threads_;
 };
@@ -130,7 +117,7 @@ class AdamMoments : public AdamBase {
   void eval_cpu(const std::vector<mx::array>& inputs, std::vector<mx::array>& outputs) override {
     output_over(inputs, 1, writable_in_place(inputs, 1), outputs[0]);
     output_over(inputs, 2, writable_in_place(inputs, 2), outputs[1]);
-    auto& encoder = encoder_for(inputs, outputs);
+    auto& encoder = register_arrays(*this, inputs, outputs);
     const float *g = inputs[0].data<float>(), *m = inputs[1].data<float>(), *v = inputs[2].data<float>();
     float *mo = outputs[0].data<float>(), *vo = outputs[1].data<float>();
     const int64_t n = inputs[0].size();
@@ -150,7 +137,7 @@ class AdamParam : public AdamBase {
   void eval_cpu(const std::vector<mx::array>& inputs, std::vector<mx::array>& outputs) override {
     const mx::array& p = inputs[0];
     output_over(inputs, 0, p.is_donatable() && writable_in_place(inputs, 0), outputs[0]);
-    auto& encoder = encoder_for(inputs, outputs);
+    auto& encoder = register_arrays(*this, inputs, outputs);
     const float *pp = p.data<float>(), *m = inputs[1].data<float>(), *v = inputs[2].data<float>();
     float* po = outputs[0].data<float>();
     const int64_t n = p.size();
@@ -205,8 +192,8 @@ class AllFinite : public CpuPrimitive {
   int num_threads_;
 };
 
-std::vector<mx::array> adam_step(const mx::array& p, const mx::array& g, const mx::array& m, const mx::array& v, double lr, double b1, double b2, double eps, double c1, double c2,
-                                 int num_threads) {
+std::vector<mx::array> adam_step(const mx::array& p, const mx::array& g, const mx::array& m, const mx::array& v, double lr,
+                                 double b1, double b2, double eps, double c1, double c2, int num_threads) {
   for (const auto* a : {&g, &m, &v})
     if (a->shape() != p.shape())
       throw std::invalid_argument("adam_step: p, g, m and v must have the same shape, got " + shape_str(p) + " and " + shape_str(*a));
