@@ -16,6 +16,7 @@
 #include <nanobind/nanobind.h>
 #include <nanobind/stl/vector.h>
 
+#include <algorithm>
 #include <atomic>
 #include <cmath>
 #include <cstring>
@@ -51,23 +52,44 @@ inline bool non_finite(float x) {
   return (bits & 0x7f800000u) == 0x7f800000u;
 }
 
-// The moments: m_out, v_out may be m, v (in place); each element is read before it is written.
-void run_moments(const float* g, const float* m, const float* v, float* m_out, float* v_out, int64_t n, AdamScalars s,
-                 int num_threads) {
-  parallel_ranges(n, num_threads, kBlock, [=](int64_t lo, int64_t hi) {
-    for (int64_t i = lo; i < hi; ++i) {
-      const float gi = g[i];
-      m_out[i] = s.b1 * m[i] + s.one_minus_b1 * gi;
-      v_out[i] = s.b2 * v[i] + s.one_minus_b2 * (gi * gi);
+// The element loops below run in chunks of kChunk: each chunk is read and computed into locals, then
+// stored, so an output may be its input (in place) and the compiler still vectorizes them (AVX2 clones;
+// adam.cpp is compiled without errno for sqrt, CMakeLists.txt). Division and sqrt are correctly rounded
+// in every variant, so the results do not depend on it.
+constexpr int kChunk = 16;
+
+// Elements [lo, hi) of the moments: m_out, v_out may be m, v.
+MLX3D_AVX2_CLONES void moments_range(const float* g, const float* m, const float* v, float* m_out, float* v_out, AdamScalars s,
+                                     int64_t lo, int64_t hi) {
+  for (int64_t i0 = lo; i0 < hi; i0 += kChunk) {
+    const int k = static_cast<int>(std::min<int64_t>(kChunk, hi - i0));
+    float mc[kChunk], vc[kChunk];
+    for (int j = 0; j < k; ++j) {
+      const float gi = g[i0 + j];
+      mc[j] = s.b1 * m[i0 + j] + s.one_minus_b1 * gi;
+      vc[j] = s.b2 * v[i0 + j] + s.one_minus_b2 * (gi * gi);
     }
-  });
+    for (int j = 0; j < k; ++j) m_out[i0 + j] = mc[j], v_out[i0 + j] = vc[j];
+  }
 }
 
-// The parameters from the new moments: p_out may be p.
+// Elements [lo, hi) of the parameters from the new moments: p_out may be p.
+MLX3D_AVX2_CLONES void param_range(const float* p, const float* m, const float* v, float* p_out, AdamScalars s, int64_t lo, int64_t hi) {
+  for (int64_t i0 = lo; i0 < hi; i0 += kChunk) {
+    const int k = static_cast<int>(std::min<int64_t>(kChunk, hi - i0));
+    float pc[kChunk];
+    for (int j = 0; j < k; ++j) pc[j] = p[i0 + j] - (s.lr * (m[i0 + j] / s.c1)) / (std::sqrt(v[i0 + j] / s.c2) + s.eps);
+    for (int j = 0; j < k; ++j) p_out[i0 + j] = pc[j];
+  }
+}
+
+void run_moments(const float* g, const float* m, const float* v, float* m_out, float* v_out, int64_t n, AdamScalars s,
+                 int num_threads) {
+  parallel_ranges(n, num_threads, kBlock, [=](int64_t lo, int64_t hi) { moments_range(g, m, v, m_out, v_out, s, lo, hi); });
+}
+
 void run_param(const float* p, const float* m, const float* v, float* p_out, int64_t n, AdamScalars s, int num_threads) {
-  parallel_ranges(n, num_threads, kBlock, [=](int64_t lo, int64_t hi) {
-    for (int64_t i = lo; i < hi; ++i) p_out[i] = p[i] - (s.lr * (m[i] / s.c1)) / (std::sqrt(v[i] / s.c2) + s.eps);
-  });
+  parallel_ranges(n, num_threads, kBlock, [=](int64_t lo, int64_t hi) { param_range(p, m, v, p_out, s, lo, hi); });
 }
 
 // Whether input k's buffer can be written in place: no other array shares it (nor another input), MLX owns

@@ -48,17 +48,9 @@ struct Image {
   size_t size() const { return size_t(h) * w * c; }
 };
 
-// x86-64 with GCC on Linux: the row passes below are also compiled for AVX2 and picked at load time
-// (ifunc). Each output element is the same sequence of float operations (no FMA contraction without
-// -mfma), so the results do not depend on the variant.
-#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && defined(__linux__)
-#define MLX3D_ROW_CLONES __attribute__((target_clones("avx2", "default")))
-#else
-#define MLX3D_ROW_CLONES
-#endif
-
+// The row passes below are also compiled for AVX2 (MLX3D_AVX2_CLONES, primitive_util.h).
 // Rows [lo, hi) of the vertical pass: tmp = the column filter of src (zero-padded).
-MLX3D_ROW_CLONES void vertical_rows(const float* src, float* tmp, Image im, const float* taps, int r, int64_t lo, int64_t hi) {
+MLX3D_AVX2_CLONES void vertical_rows(const float* src, float* tmp, Image im, const float* taps, int r, int64_t lo, int64_t hi) {
   const int rowlen = im.w * im.c;
   for (int i = int(lo); i < int(hi); ++i) {
     float* out = tmp + size_t(i) * rowlen;
@@ -81,7 +73,7 @@ MLX3D_ROW_CLONES void vertical_rows(const float* src, float* tmp, Image im, cons
 
 // Rows [lo, hi) of the horizontal pass: dst = the row filter of tmp, each row copied into a
 // zero-padded scratch row `row` (rowlen + 2 r C floats; branch-free, vectorisable).
-MLX3D_ROW_CLONES void horizontal_rows(const float* tmp, float* dst, float* row, Image im, const float* taps, int r, int64_t lo, int64_t hi) {
+MLX3D_AVX2_CLONES void horizontal_rows(const float* tmp, float* dst, float* row, Image im, const float* taps, int r, int64_t lo, int64_t hi) {
   const int rowlen = im.w * im.c, pad = r * im.c;
   for (int i = int(lo); i < int(hi); ++i) {
     std::copy(tmp + size_t(i) * rowlen, tmp + size_t(i + 1) * rowlen, row + pad);

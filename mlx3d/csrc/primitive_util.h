@@ -22,6 +22,15 @@
 #include "mlx/backend/cpu/encoder.h"
 #include "mlx/primitives.h"
 
+// x86-64 with GCC on Linux: a function so marked is also compiled for AVX2 and picked at load time
+// (ifunc). Each output element is the same sequence of float operations (no FMA contraction without
+// -mfma), so the results do not depend on the variant.
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && defined(__linux__)
+#define MLX3D_AVX2_CLONES __attribute__((target_clones("avx2", "default")))
+#else
+#define MLX3D_AVX2_CLONES
+#endif
+
 namespace mlx3d {
 
 // Threads to use for `work_items` items: num_threads (0: all hardware threads), at most one per item.
