@@ -107,8 +107,8 @@ def _setup(n: int, scale: float):
     return model, cams[0], target
 
 
-def _profile(trainer, camera, target, threads: list, repeats: int) -> dict:
-    """{threads: {stage: ms}} of each stage on its own (forward and backward where it has one)."""
+def _profile(trainer, camera, target, threads: list, repeats: int) -> tuple:
+    """({threads: {stage: ms}}, tile entries): each stage on its own (forward and backward where it has one)."""
     import mlx.core as mx
     import numpy as np
 
@@ -193,7 +193,7 @@ def _profile(trainer, camera, target, threads: list, repeats: int) -> dict:
     for name, fn in stages.items():
         for t, (ms, _) in _alternating(fn, threads, repeats).items():
             out[t][name] = ms
-    return out
+    return out, int(bins.flatten_ids.size)
 
 
 def _bandwidth_gbs() -> float:
@@ -220,9 +220,8 @@ def child(args) -> None:
     trainer.step(camera, target)  # warm-up: Adam moments, compilation (then one more per thread count)
     steps = _alternating(lambda: trainer.step(camera, target), threads, args.steps)
     peak = peak_rss_mb()
-    stages = _profile(trainer, camera, target, threads, max(3, args.steps)) if args.profile else None
+    stages, entries = _profile(trainer, camera, target, threads, max(3, args.steps)) if args.profile else (None, None)
     bandwidth = _bandwidth_gbs() if args.profile else None
-    entries = _tile_entries(trainer, camera) if args.profile else None
     results = []
     for t in threads:
         r = {"gaussians": len(trainer.model), "width": camera.width, "height": camera.height, "threads": t,
@@ -233,19 +232,6 @@ def child(args) -> None:
         results.append(r)
     mx.clear_cache()
     print(json.dumps(results))
-
-
-def _tile_entries(trainer, camera) -> int:
-    import mlx.core as mx
-
-    from mlx3d.render.binning import bin_tiles
-    from mlx3d.render.projection import project_ewa
-
-    p = trainer.model.params
-    proj = project_ewa(camera, p["means"], p["quats"], mx.exp(p["scales"]))
-    bins = bin_tiles(proj.means2d, proj.radii, proj.depths, camera.width, camera.height, conics=proj.conics,
-                     opacities=mx.sigmoid(p["opacities"]))
-    return int(bins.flatten_ids.size)
 
 
 def _thread_counts(text: str) -> list:
