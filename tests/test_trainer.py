@@ -132,17 +132,20 @@ def _address(a: mx.array) -> int:
 
 def test_cpu_adam_writes_over_its_inputs_only_where_nothing_else_holds_them():
     # the kernels reuse the old moments' memory, and the old parameters' when the caller dropped them
-    # (no fresh pages per step); an array that shares a moment's memory (a view) or a parameter the caller
-    # still holds keeps its values; the results agree with the MLX expression
+    # (no fresh pages per step); an array that shares a moment's memory (a view), a parameter the caller
+    # still holds, or a moment the caller holds keeps its values; the results agree with the MLX expression
     rng = np.random.default_rng(9)
     shape = (100_003, 3)
     opt, ref = Adam({"x": 1e-2}, backend="cpu"), Adam({"x": 1e-2}, backend="reference")
     p = {"x": mx.array(rng.normal(size=shape).astype(np.float32))}
     pr = {"x": mx.array(np.array(p["x"]))}
-    for t in range(5):
+    for t in range(6):
         g = mx.array(rng.normal(size=shape).astype(np.float32))
         before = {k: _address(d["x"]) for k, d in (("p", p), ("m", opt.m), ("v", opt.v)) if d}
-        view = held = None
+        view = held = held_moment = None
+        if t == 5:
+            held_moment = opt.v["x"]
+            held_moment_values = np.array(held_moment)
         if t == 3:
             view = opt.m["x"].reshape(-1)
             mx.eval(view)
@@ -153,8 +156,10 @@ def test_cpu_adam_writes_over_its_inputs_only_where_nothing_else_holds_them():
         p, pr = opt.update(p, {"x": g}), ref.update(pr, {"x": g})
         mx.eval(p, opt.m, opt.v, pr, ref.m, ref.v)
         if t >= 1:
-            assert (_address(opt.m["x"]) == before["m"]) == (t != 3) and _address(opt.v["x"]) == before["v"]
+            assert (_address(opt.m["x"]) == before["m"]) == (t != 3) and (_address(opt.v["x"]) == before["v"]) == (t != 5)
             assert (_address(p["x"]) == before["p"]) == (t != 4)
+        if t == 5:
+            np.testing.assert_array_equal(np.array(held_moment), held_moment_values)
         if t == 3:
             np.testing.assert_array_equal(np.array(view), view_values)
         if t == 4:
@@ -162,7 +167,7 @@ def test_cpu_adam_writes_over_its_inputs_only_where_nothing_else_holds_them():
         for mine, theirs in ((opt.m, ref.m), (opt.v, ref.v)):  # float32 rounding of the same formula
             np.testing.assert_allclose(np.array(mine["x"]), np.array(theirs["x"]), rtol=1e-6, atol=0)
         np.testing.assert_allclose(np.array(p["x"]), np.array(pr["x"]), rtol=1e-6, atol=1e-8)
-        del view, held
+        del view, held, held_moment
 
 
 # ------------------------------------------------------------------ density control

@@ -1,18 +1,19 @@
-// One Adam step on a parameter array as CPU MLX primitives, and the finiteness check that gates it.
+// One Adam step on a parameter array as CPU MLX primitives, and the finiteness check the trainer runs
+// before it.
 //
 //   m' = b1 m + (1 - b1) g;  v' = b2 v + (1 - b2) g²;  p' = p - lr (m' / c1) / (sqrt(v' / c2) + eps)
 //
-// with the bias corrections c1 = 1 - b1^t, c2 = 1 - b2^t given by the caller: AdamMoments (m', v') then
-// AdamParam (p'), threaded passes over the elements, so results do not depend on the thread count.
+// with the bias corrections c1 = 1 - b1^t, c2 = 1 - b2^t given by the caller: AdamMoment (m', then v')
+// and AdamParam (p'), threaded passes over the elements, so results do not depend on the thread count.
 // AllFinite checks a step's loss and gradients first (the trainer updates only when they are finite).
 //
-// The outputs are written over their inputs where that is safe: m' and v' over m and v unless another
-// array shares their buffer (a view), p' over p when MLX may donate it (nothing else holds p). A fresh
-// buffer costs a page fault and zeroing per 4 KB page on first touch (writing 236 MB of fresh pages took
+// Each is a single-output primitive, so MLX's own donation rule applies: its output is written over its
+// first input when nothing else holds that array (then m' over m, v' over v, p' over p). A fresh buffer
+// costs a page fault and zeroing per 4 KB page on first touch (writing 236 MB of fresh pages took
 // 170-210 ms here, against 40 ms for memory already touched), and the old and new arrays then coexist
-// (3 x 236 MB at 1M Gaussians). So the optimizer that owns m and v must drop them for m' and v'
-// (mlx3d.training.adam.Adam does), and the trainer drops its parameters before evaluating the update
-// (after the step's gradients, whose graph holds them).
+// (3 x 236 MB at 1M Gaussians). mlx3d.training.adam.Adam drops its old moments for the new ones, and the
+// trainer drops its parameters before evaluating the update (after the step's gradients, whose graph
+// holds them).
 #include <nanobind/nanobind.h>
 #include <nanobind/stl/vector.h>
 
@@ -58,18 +59,17 @@ inline bool non_finite(float x) {
 // in every variant, so the results do not depend on it.
 constexpr int kChunk = 16;
 
-// Elements [lo, hi) of the moments: m_out, v_out may be m, v.
-MLX3D_AVX2_CLONES void moments_range(const float* g, const float* m, const float* v, float* m_out, float* v_out, AdamScalars s,
-                                     int64_t lo, int64_t hi) {
+// Elements [lo, hi) of a moment: out = a x + (1 - a) g, or (squared) a x + (1 - a) g²; out may be x.
+MLX3D_AVX2_CLONES void moment_range(const float* g, const float* x, float* out, float a, float one_minus_a, bool squared,
+                                    int64_t lo, int64_t hi) {
   for (int64_t i0 = lo; i0 < hi; i0 += kChunk) {
     const int k = static_cast<int>(std::min<int64_t>(kChunk, hi - i0));
-    float mc[kChunk], vc[kChunk];
-    for (int j = 0; j < k; ++j) {
-      const float gi = g[i0 + j];
-      mc[j] = s.b1 * m[i0 + j] + s.one_minus_b1 * gi;
-      vc[j] = s.b2 * v[i0 + j] + s.one_minus_b2 * (gi * gi);
-    }
-    for (int j = 0; j < k; ++j) m_out[i0 + j] = mc[j], v_out[i0 + j] = vc[j];
+    float c[kChunk];
+    if (squared)
+      for (int j = 0; j < k; ++j) c[j] = a * x[i0 + j] + one_minus_a * (g[i0 + j] * g[i0 + j]);
+    else
+      for (int j = 0; j < k; ++j) c[j] = a * x[i0 + j] + one_minus_a * g[i0 + j];
+    for (int j = 0; j < k; ++j) out[i0 + j] = c[j];
   }
 }
 
@@ -83,29 +83,18 @@ MLX3D_AVX2_CLONES void param_range(const float* p, const float* m, const float* 
   }
 }
 
-void run_moments(const float* g, const float* m, const float* v, float* m_out, float* v_out, int64_t n, AdamScalars s,
-                 int num_threads) {
-  parallel_ranges(n, num_threads, kBlock, [=](int64_t lo, int64_t hi) { moments_range(g, m, v, m_out, v_out, s, lo, hi); });
-}
-
 void run_param(const float* p, const float* m, const float* v, float* p_out, int64_t n, AdamScalars s, int num_threads) {
   parallel_ranges(n, num_threads, kBlock, [=](int64_t lo, int64_t hi) { param_range(p, m, v, p_out, s, lo, hi); });
 }
 
-// Whether input k's buffer can be written in place: no other array shares it (nor another input), MLX owns
-// it, and it holds exactly the array's elements.
-bool writable_in_place(const std::vector<mx::array>& inputs, int k) {
+// `out` over input k's buffer where MLX may donate it (nothing else holds it; MLX's rule) and no other input
+// shares it, else a fresh buffer.
+void output_over(const std::vector<mx::array>& inputs, int k, mx::array& out) {
   const mx::array& a = inputs[k];
-  for (int j = 0; j < static_cast<int>(inputs.size()); ++j)
-    if (j != k && inputs[j].data_shared_ptr() == a.data_shared_ptr()) return false;
-  return a.data_shared_ptr().use_count() == 1 && a.data_shared_ptr()->is_owned() && a.flags().row_contiguous &&
-         a.data_size() == a.size();
-}
-
-// Output `out` over input k's buffer where it may be written there (`in_place`), else a fresh buffer.
-void output_over(const std::vector<mx::array>& inputs, int k, bool in_place, mx::array& out) {
-  if (in_place)
-    out.copy_shared_buffer(inputs[k]);
+  bool donate = a.is_donatable() && a.flags().row_contiguous && a.data_size() == a.size();
+  for (int j = 0; j < static_cast<int>(inputs.size()); ++j) donate = donate && (j == k || inputs[j].data_shared_ptr() != a.data_shared_ptr());
+  if (donate)
+    out.copy_shared_buffer(a);
   else
     out.set_data(mx::allocator::malloc(out.nbytes()));
 }
@@ -131,24 +120,29 @@ class AdamBase : public CpuPrimitive {
   int num_threads_;
 };
 
-// inputs: g, m, v; outputs: m', v', over m and v where writable_in_place.
-class AdamMoments : public AdamBase {
+// inputs: g, x (the moment); output: x' (the first moment, or with `squared` the second), over x when donated.
+class AdamMoment : public AdamBase {
  public:
-  using AdamBase::AdamBase;
+  AdamMoment(mx::Stream stream, AdamScalars s, int num_threads, bool squared) : AdamBase(stream, s, num_threads), squared_(squared) {}
 
   void eval_cpu(const std::vector<mx::array>& inputs, std::vector<mx::array>& outputs) override {
-    output_over(inputs, 1, writable_in_place(inputs, 1), outputs[0]);
-    output_over(inputs, 2, writable_in_place(inputs, 2), outputs[1]);
+    output_over(inputs, 1, outputs[0]);
     auto& encoder = register_arrays(*this, inputs, outputs);
-    const float *g = inputs[0].data<float>(), *m = inputs[1].data<float>(), *v = inputs[2].data<float>();
-    float *mo = outputs[0].data<float>(), *vo = outputs[1].data<float>();
+    const float *g = inputs[0].data<float>(), *x = inputs[1].data<float>();
+    float* out = outputs[0].data<float>();
     const int64_t n = inputs[0].size();
-    encoder.dispatch([=, s = s_, threads = num_threads_]() { run_moments(g, m, v, mo, vo, n, s, threads); });
+    const float a = squared_ ? s_.b2 : s_.b1, one_minus_a = squared_ ? s_.one_minus_b2 : s_.one_minus_b1;
+    encoder.dispatch([=, squared = squared_, threads = num_threads_]() {
+      parallel_ranges(n, threads, kBlock, [=](int64_t lo, int64_t hi) { moment_range(g, x, out, a, one_minus_a, squared, lo, hi); });
+    });
   }
 
-  std::vector<mx::Shape> output_shapes(const std::vector<mx::array>& inputs) override { return {inputs[0].shape(), inputs[0].shape()}; }
+  std::vector<mx::Shape> output_shapes(const std::vector<mx::array>& inputs) override { return {inputs[0].shape()}; }
 
-  const char* name() const override { return "AdamMoments"; }
+  const char* name() const override { return squared_ ? "AdamSecondMoment" : "AdamFirstMoment"; }
+
+ private:
+  bool squared_;
 };
 
 // inputs: p, m', v'; output: p', over p when MLX may donate it (nothing else holds p).
@@ -158,7 +152,7 @@ class AdamParam : public AdamBase {
 
   void eval_cpu(const std::vector<mx::array>& inputs, std::vector<mx::array>& outputs) override {
     const mx::array& p = inputs[0];
-    output_over(inputs, 0, p.is_donatable() && writable_in_place(inputs, 0), outputs[0]);
+    output_over(inputs, 0, outputs[0]);
     auto& encoder = register_arrays(*this, inputs, outputs);
     const float *pp = p.data<float>(), *m = inputs[1].data<float>(), *v = inputs[2].data<float>();
     float* po = outputs[0].data<float>();
@@ -227,10 +221,11 @@ std::vector<mx::array> adam_step(const mx::array& p, const mx::array& g, const m
   const AdamScalars s{float(lr), float(b1), float(1.0 - b1), float(b2), float(1.0 - b2), float(eps), float(c1), float(c2)};
   auto st = mx::default_stream(mx::Device::cpu);
   auto c = [&](const mx::array& a) { return mx::contiguous(a, false, st); };
-  std::vector<mx::array> moments = mx::array::make_arrays({p.shape(), p.shape()}, {mx::float32, mx::float32},
-                                                          std::make_shared<AdamMoments>(st, s, num_threads), {c(g), c(m), c(v)});
-  mx::array p_new(p.shape(), mx::float32, std::make_shared<AdamParam>(st, s, num_threads), {c(p), moments[0], moments[1]});
-  return {p_new, moments[0], moments[1]};
+  const mx::array gc = c(g);
+  mx::array m_new(p.shape(), mx::float32, std::make_shared<AdamMoment>(st, s, num_threads, false), {gc, c(m)});
+  mx::array v_new(p.shape(), mx::float32, std::make_shared<AdamMoment>(st, s, num_threads, true), {gc, c(v)});
+  mx::array p_new(p.shape(), mx::float32, std::make_shared<AdamParam>(st, s, num_threads), {c(p), m_new, v_new});
+  return {p_new, m_new, v_new};
 }
 
 mx::array all_finite(const std::vector<mx::array>& arrays, int num_threads) {
@@ -248,8 +243,8 @@ void bind_adam(nb::module_& m) {
   m.def("adam_step", &adam_step, "p"_a, "g"_a, "m"_a, "v"_a, "lr"_a, "b1"_a, "b2"_a, "eps"_a, "c1"_a, "c2"_a,
         "num_threads"_a = 0,
         "One Adam step on float32 arrays of one shape: returns [p', m', v'] (MLX primitives, CPU, threaded).\n"
-        "m' and v' take over the buffers of m and v unless another array shares them, p' that of p when nothing\n"
-        "else holds p. c1, c2: the bias corrections 1 - b1^t, 1 - b2^t. Used by mlx3d.training.adam.Adam.");
+        "Each takes over the buffer of m, v or p where nothing else holds that array (MLX's donation).\n"
+        "c1, c2: the bias corrections 1 - b1^t, 1 - b2^t. Used by mlx3d.training.adam.Adam.");
   m.def("all_finite", &all_finite, "arrays"_a, "num_threads"_a = 0,
         "A bool scalar (MLX primitive, CPU, threaded): True when no element of any array is NaN or infinite.");
 }

@@ -40,10 +40,9 @@ class Adam:
     name to its learning rate; a name missing from ``lrs`` (or with lr 0) is
     not updated.
 
-    The moments ``m`` and ``v`` (dicts of arrays, one per name) belong to the
-    optimizer: on the CPU, ``update`` writes the new moments into the old ones'
-    memory, so an array taken from ``m`` or ``v`` changes with the next update
-    once evaluated (a view taken of it does not). ``state_dict()`` gives copies.
+    On the CPU, ``update`` writes the new moments over the old ones' memory,
+    and each new parameter over the old one's, where nothing else holds the
+    old array (MLX's donation): an array you keep keeps its values.
     """
 
     def __init__(self, lrs: dict, betas=(0.9, 0.999), eps: float = 1e-15, backend: str = "auto"):
@@ -61,9 +60,8 @@ class Adam:
     def update(self, params: dict, grads: dict) -> dict:
         """New params after one step (moments are created on first use).
 
-        On the CPU the new moments are written over the old ones, and each new
-        parameter over the old one when nothing else holds it (drop your
-        references to ``params`` before evaluating, as the trainer does).
+        Drop your references to ``params`` before evaluating the result, as the
+        trainer does, so that the new parameters can take over their memory.
         """
         self.step_count += 1
         c1 = 1.0 - self.b1**self.step_count
