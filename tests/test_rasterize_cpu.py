@@ -436,7 +436,7 @@ def test_thread_count_gives_bitwise_identical_gradients_over_many_chunks():
     sum of the pixels' alphas (each pixel's weights sum to its alpha)."""
     width = height = 128
     scene = random_scene(11, 80_000, width, height, 3, sigma=(4.0, 12.0))
-    assert len(scene[5]) > 2 * ((1 << 22) // 9)  # more than two chunks of slots (K = 6 + 3 fields)
+    assert len(scene[5]) > 2 * ((1 << 20) // 9)  # more than two chunks of slots (kSlotBudget, K = 6 + 3 fields)
     cot_accum = np.ones((height, width, 3), np.float32)
     cot_alpha = np.zeros((height, width), np.float32)
     grads = {t: grads_cpu(scene, width, height, 16, cot_accum, cot_alpha, num_threads=t) for t in (1, 2, 3)}

@@ -1190,10 +1190,17 @@ void add_slots(const Inputs& in, int64_t N, int K, int64_t lo0, int64_t hi1, con
   }
 }
 
+// Slot floats per chunk of tiles in the backward pass: the two chunk buffers take 8 MB, which glibc
+// serves from memory it already holds once the first pass has freed them. Buffers of 16 MB each came
+// from fresh pages every pass (a page fault and a zeroed page per 4 KB: 30-40 ms of CPU per step at
+// 138,766 Gaussians, 648x420); smaller chunks are not slower (README, "A training step at
+// real-capture sizes").
+constexpr int64_t kSlotBudget = int64_t(1) << 20;
+
 // Adds every tile entry's gradient slots to acc[g * K + field] of its Gaussian g, in flatten_ids order.
 //
-// Tiles are taken in chunks of consecutive tiles holding at most ~4M slot floats (or one tile),
-// each chunk's slots in one of two buffers. A chunk's slots are added to the per-Gaussian sums by
+// Tiles are taken in chunks of consecutive tiles holding at most kSlotBudget slot floats (or one
+// tile), each chunk's slots in one of two buffers. A chunk's slots are added to the per-Gaussian sums by
 // thread 0 alone, in order, so the sums do not depend on the thread count. Summing one thread
 // measured faster than splitting it among threads (README, "A training step at real-capture
 // sizes"), so instead it overlaps the other threads' tiles: thread 0 sums chunk c as soon as all of
@@ -1212,7 +1219,7 @@ void accumulate_entries(Inputs in, const Geometry& geo, int num_threads, const B
   in.splats = splats.data();
   std::vector<Scratch> scratch(threads);
   const BackwardTileFn backward_tile = pick_backward(C);
-  const int64_t budget = std::max<int64_t>(1, (int64_t(1) << 22) / K);
+  const int64_t budget = std::max<int64_t>(1, kSlotBudget / K);
   std::vector<int> chunk_start{0};  // first tile of each chunk, then `tiles`
   std::vector<int> chunk_of(tiles);
   int64_t largest = 0;
