@@ -75,6 +75,24 @@ def test_bitwise_identical_for_any_thread_count():
             np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.parametrize("degree", [1, 3])
+def test_each_gaussian_gets_the_bits_it_gets_alone(degree):
+    """The kernel computes several Gaussians at once (one per vector lane, the last batch padded):
+    each one's colour and gradients are bit for bit those of evaluating it on its own."""
+    sh, means, centre, rng = problem(n=21)
+    cot = mx.array(rng.normal(0, 1, (21, 3)).astype(np.float32))
+
+    def run(s, m, c):
+        rgb, grads = mx.vjp(lambda s_, m_: sh_colors(s_, m_, centre, degree, "cpu"), [s, m], [c])
+        return [np.array(a) for a in (rgb[0], *grads)]
+
+    together = run(sh, means, cot)
+    for i in range(21):
+        alone = run(sh[i : i + 1], means[i : i + 1], cot[i : i + 1])
+        for a, b in zip(together, alone):
+            assert a[i : i + 1].tobytes() == b.tobytes()
+
+
 @pytest.mark.parametrize("backend", ["cpu", "reference"])
 @pytest.mark.parametrize("k, degree", [(16, 3), (16, 1), (1, 0)])
 def test_the_pair_sh_dc_sh_rest_renders_as_their_concatenation(backend, k, degree):

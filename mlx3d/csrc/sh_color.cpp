@@ -10,8 +10,10 @@
 #include <nanobind/nanobind.h>
 #include <nanobind/stl/vector.h>
 
+#include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <cstring>
 #include <memory>
 #include <stdexcept>
 #include <string>
@@ -22,6 +24,9 @@
 #include "mlx/ops.h"
 #include "mlx/primitives.h"
 #include "primitive_util.h"
+#if defined(__GNUC__) && !defined(__clang__)
+#pragma GCC diagnostic ignored "-Wpsabi"  // vector lanes (below) only cross always-inlined functions
+#endif
 #include "sh_math.h"
 
 namespace nb = nanobind;
@@ -58,70 +63,140 @@ ShInputs sh_inputs(const std::vector<mx::array>& inputs, int blocks, int degree)
   return in;
 }
 
-// The 3 floats of coefficient k of Gaussian i (k < K) in a layout of blocks `kb` over `block`.
-template <class T>
-inline T* coefficient(T* const block[2], const int kb[2], int64_t i, int k) {
-  return k < kb[0] ? block[0] + (i * kb[0] + k) * 3 : block[1] + (i * kb[1] + k - kb[0]) * 3;
+// Lanes: Gaussians computed together, one per lane of a GCC vector of floats (8 lanes: one AVX
+// register in the AVX2 variant, two SSE registers otherwise); other compilers get one per lane, as
+// the rasterizer's lanes (rasterize.cpp). Each lane runs exactly the float operations of the
+// one-Gaussian code (no FMA contraction: this file is built with -ffp-contract=off), so results do
+// not depend on the lane count or the variant.
+#if defined(__GNUC__) && !defined(__clang__)
+constexpr int kLanes = 8;
+typedef float Lanes __attribute__((vector_size(4 * kLanes)));
+#else
+constexpr int kLanes = 1;
+typedef float Lanes;
+#endif
+
+SH_INLINE Lanes load_lanes(const float* p) {
+  Lanes v;
+  std::memcpy(&v, p, sizeof(v));
+  return v;
 }
 
-// Unclamped colour of Gaussian i seen along the basis b.
-inline void colour_of(const ShInputs& in, int64_t i, const ShBasis& b, float* c) {
-  const int bases = sh_num_bases(in.degree);
-  for (int ch = 0; ch < 3; ++ch) {
-    float acc = b.y[0] * coefficient(in.block, in.kb, i, 0)[ch];
-    for (int k = 1; k < bases; ++k) acc = acc + b.y[k] * coefficient(in.block, in.kb, i, k)[ch];
-    c[ch] = acc + 0.5f;
+SH_INLINE void store_lanes(float* p, Lanes v) { std::memcpy(p, &v, sizeof(v)); }
+
+// Up to kLanes consecutive Gaussians [i0, i0 + count), lanes past `count` repeating the last one, with
+// their directions and first `bases` coefficients gathered lane-wise (coef[3k + c][lane]).
+struct Batch {
+  int64_t i0;
+  int count;
+  ShDir dir[kLanes];
+  alignas(32) float x[kLanes], y[kLanes], z[kLanes];
+  alignas(32) float coef[3 * SH_MAX_BASES][kLanes];
+};
+
+SH_INLINE void gather(const ShInputs& in, int64_t i0, int64_t hi, int bases, Batch& b) {
+  b.i0 = i0;
+  b.count = static_cast<int>(std::min<int64_t>(kLanes, hi - i0));
+  for (int j = 0; j < kLanes; ++j) {
+    const int64_t i = i0 + std::min(j, b.count - 1);
+    const float* m = in.means + 3 * i;
+    b.dir[j] = sh_direction(m[0] - in.centre[0], m[1] - in.centre[1], m[2] - in.centre[2]);
+    b.x[j] = b.dir[j].x;
+    b.y[j] = b.dir[j].y;
+    b.z[j] = b.dir[j].z;
+    int q0 = 0;  // first float of the block in coef
+    for (int blk = 0; blk < 2 && q0 < 3 * bases; ++blk) {
+      const float* c = in.block[blk] + i * 3 * in.kb[blk];
+      const int floats = std::min(3 * in.kb[blk], 3 * bases - q0);
+      for (int q = 0; q < floats; ++q) b.coef[q0 + q][j] = c[q];
+      q0 += 3 * in.kb[blk];
+    }
   }
 }
 
-inline ShDir direction_of(const ShInputs& in, int64_t i) {
-  const float* m = in.means + 3 * i;
-  return sh_direction(m[0] - in.centre[0], m[1] - in.centre[1], m[2] - in.centre[2]);
+// Unclamped colours of a batch seen along the basis y (lane-wise), summed in k order.
+SH_INLINE void colour_of(const Batch& batch, int bases, const Lanes* y, Lanes* colour) {
+  for (int ch = 0; ch < 3; ++ch) {
+    Lanes acc = y[0] * load_lanes(batch.coef[ch]);
+    for (int k = 1; k < bases; ++k) acc = acc + y[k] * load_lanes(batch.coef[3 * k + ch]);
+    colour[ch] = acc + 0.5f;
+  }
 }
 
-void run_forward(ShInputs in, int num_threads, float* rgb) {
-  parallel_ranges(in.n, num_threads, kBlock, [in, rgb](int64_t lo, int64_t hi) {
-    for (int64_t i = lo; i < hi; ++i) {
-      const ShDir u = direction_of(in, i);
-      const ShBasis b = sh_basis(in.degree, u.x, u.y, u.z);
-      float c[3];
-      colour_of(in, i, b, c);
-      for (int ch = 0; ch < 3; ++ch) rgb[3 * i + ch] = c[ch] > 0.0f ? c[ch] : 0.0f;
-    }
-  });
+MLX3D_AVX2_CLONES void forward_range(const ShInputs& in, int64_t lo, int64_t hi, float* rgb) {
+  const int bases = sh_num_bases(in.degree);
+  Batch batch;
+  for (int64_t i0 = lo; i0 < hi; i0 += kLanes) {
+    gather(in, i0, hi, bases, batch);
+    const ShBasisOf<Lanes> b = sh_basis(in.degree, load_lanes(batch.x), load_lanes(batch.y), load_lanes(batch.z));
+    Lanes colour[3];
+    colour_of(batch, bases, b.y, colour);
+    alignas(32) float c[3][kLanes];
+    for (int ch = 0; ch < 3; ++ch) store_lanes(c[ch], colour[ch]);
+    for (int j = 0; j < batch.count; ++j)
+      for (int ch = 0; ch < 3; ++ch) rgb[3 * (i0 + j) + ch] = c[ch][j] > 0.0f ? c[ch][j] : 0.0f;
+  }
 }
 
 // d_block: dL/d(each block), laid out as the inputs.
-void run_backward(ShInputs in, const float* cot, int num_threads, float* const d_block[2], float* d_means) {
+MLX3D_AVX2_CLONES void backward_range(const ShInputs& in, const float* cot, float* const d_block[2], float* d_means, int64_t lo,
+                                      int64_t hi) {
   const int bases = sh_num_bases(in.degree);
-  parallel_ranges(in.n, num_threads, kBlock, [in, cot, d_block, d_means, bases](int64_t lo, int64_t hi) {
-    for (int64_t i = lo; i < hi; ++i) {
-      const ShDir u = direction_of(in, i);
-      const ShBasis b = sh_basis(in.degree, u.x, u.y, u.z);
-      float c[3], g[3];
-      colour_of(in, i, b, c);
-      for (int ch = 0; ch < 3; ++ch) g[ch] = c[ch] > 0.0f ? cot[3 * i + ch] : 0.0f;
-      float gx = 0.0f, gy = 0.0f, gz = 0.0f;
-      for (int k = 0; k < in.k; ++k) {
-        const float* s = coefficient(in.block, in.kb, i, k);
-        float* ds = coefficient(d_block, in.kb, i, k);
-        float along = 0.0f;  // Σ_c g_c sh[k][c]
-        for (int ch = 0; ch < 3; ++ch) {
-          ds[ch] = k < bases ? g[ch] * b.y[k] : 0.0f;
-          along = along + g[ch] * s[ch];
-        }
-        if (k > 0 && k < bases) {
-          gx = gx + along * b.dx[k];
-          gy = gy + along * b.dy[k];
-          gz = gz + along * b.dz[k];
-        }
+  Batch batch;
+  alignas(32) float ds[3 * SH_MAX_BASES][kLanes];  // dL/dsh[k][c] of each lane, for k < bases
+  for (int64_t i0 = lo; i0 < hi; i0 += kLanes) {
+    gather(in, i0, hi, bases, batch);
+    const ShBasisOf<Lanes> b = sh_basis(in.degree, load_lanes(batch.x), load_lanes(batch.y), load_lanes(batch.z));
+    Lanes colour[3];
+    colour_of(batch, bases, b.y, colour);
+    // dL/dcolour: the cotangent where the colour is above the clamp, else 0.
+    alignas(32) float c[3][kLanes], g[3][kLanes];
+    for (int ch = 0; ch < 3; ++ch) store_lanes(c[ch], colour[ch]);
+    for (int j = 0; j < kLanes; ++j)
+      for (int ch = 0; ch < 3; ++ch) g[ch][j] = c[ch][j] > 0.0f ? cot[3 * (i0 + std::min(j, batch.count - 1)) + ch] : 0.0f;
+    const Lanes gl[3] = {load_lanes(g[0]), load_lanes(g[1]), load_lanes(g[2])};
+    Lanes gx = {}, gy = {}, gz = {};
+    for (int k = 0; k < bases; ++k) {
+      Lanes along = {};  // Σ_c g_c sh[k][c]
+      for (int ch = 0; ch < 3; ++ch) {
+        store_lanes(ds[3 * k + ch], gl[ch] * b.y[k]);
+        along = along + gl[ch] * load_lanes(batch.coef[3 * k + ch]);
       }
-      const ShVec3 dm = sh_direction_vjp(u, gx, gy, gz);
+      if (k > 0) {
+        gx = gx + along * b.dx[k];
+        gy = gy + along * b.dy[k];
+        gz = gz + along * b.dz[k];
+      }
+    }
+    alignas(32) float gxs[kLanes], gys[kLanes], gzs[kLanes];
+    store_lanes(gxs, gx);
+    store_lanes(gys, gy);
+    store_lanes(gzs, gz);
+    for (int j = 0; j < batch.count; ++j) {
+      const int64_t i = i0 + j;
+      int q0 = 0;  // first float of the block in ds
+      for (int blk = 0; blk < 2; ++blk) {
+        float* d = d_block[blk] + i * 3 * in.kb[blk];
+        const int floats = 3 * in.kb[blk], live = std::max(0, std::min(floats, 3 * bases - q0));
+        for (int q = 0; q < live; ++q) d[q] = ds[q0 + q][j];
+        for (int q = live; q < floats; ++q) d[q] = 0.0f;
+        q0 += floats;
+      }
+      const ShVec3 dm = sh_direction_vjp(batch.dir[j], gxs[j], gys[j], gzs[j]);
       d_means[3 * i] = dm.x;
       d_means[3 * i + 1] = dm.y;
       d_means[3 * i + 2] = dm.z;
     }
-  });
+  }
+}
+
+void run_forward(ShInputs in, int num_threads, float* rgb) {
+  parallel_ranges(in.n, num_threads, kBlock, [in, rgb](int64_t lo, int64_t hi) { forward_range(in, lo, hi, rgb); });
+}
+
+void run_backward(ShInputs in, const float* cot, int num_threads, float* const d_block[2], float* d_means) {
+  parallel_ranges(in.n, num_threads, kBlock,
+                  [in, cot, d_block, d_means](int64_t lo, int64_t hi) { backward_range(in, cot, d_block, d_means, lo, hi); });
 }
 
 class ShColorBase : public CpuPrimitive {

@@ -1,10 +1,12 @@
 // Per-Gaussian math of view-dependent colour from spherical harmonics.
 //
-// Plain C++ with the same rules as raster_math.h (inline functions on float,
-// fixed-size structs, no pointers, standard library calls or address-space
-// qualifiers), so that a Metal kernel can include this text as its header as
-// the rasterizer's do. The CPU primitives are in sh_color.cpp; the pure-MLX
-// reference is mlx3d.splatting.sh.eval_sh.
+// Plain C++ with the same rules as raster_math.h (inline functions and function
+// templates over the lane type F, fixed-size structs, no pointers, standard
+// library calls or address-space qualifiers), so that a Metal kernel can
+// include this text as its header as the rasterizer's do. The CPU primitives
+// (sh_color.cpp) instantiate the basis with F = a GCC vector of floats, one
+// Gaussian per lane, each lane running exactly the float operations of F =
+// float. The pure-MLX reference is mlx3d.splatting.sh.eval_sh.
 //
 // Conventions (README, "Spherical harmonics"): K = (degree+1)² coefficients per
 // channel in the 3DGS order; the direction is d = mean - camera centre,
@@ -37,31 +39,49 @@
 #include <cmath>
 #define SH_SQRT(x) std::sqrt(x)
 #endif
+#if defined(__GNUC__) && !defined(__METAL_VERSION__)
+// Always inlined on the CPU, as raster_math.h's RM_INLINE: vector lanes passed between functions
+// compiled for different instruction sets would not agree on the calling convention.
+#define SH_INLINE inline __attribute__((always_inline))
+#else
+#define SH_INLINE inline
+#endif
 
 // Basis values Y_0..Y_15 at the unit direction (x, y, z) (entries past the degree's count are 0)
 // and their partial derivatives with respect to x, y and z, taken as independent variables.
-struct ShBasis {
-  float y[SH_MAX_BASES];
-  float dx[SH_MAX_BASES];
-  float dy[SH_MAX_BASES];
-  float dz[SH_MAX_BASES];
+template <typename F>
+struct ShBasisOf {
+  F y[SH_MAX_BASES];
+  F dx[SH_MAX_BASES];
+  F dy[SH_MAX_BASES];
+  F dz[SH_MAX_BASES];
 };
+typedef ShBasisOf<float> ShBasis;
 
 inline int sh_num_bases(int degree) { return (degree + 1) * (degree + 1); }
 
-inline ShBasis sh_basis(int degree, float x, float y, float z) {
-  ShBasis b;
-  for (int k = 0; k < SH_MAX_BASES; ++k) b.y[k] = b.dx[k] = b.dy[k] = b.dz[k] = 0.0f;
-  b.y[0] = SH_C0;
+// All lanes = v (exactly: 0 + v).
+template <typename F>
+SH_INLINE F sh_splat(float v) {
+  F zero = {};
+  return zero + v;
+}
+
+template <typename F>
+SH_INLINE ShBasisOf<F> sh_basis(int degree, F x, F y, F z) {
+  ShBasisOf<F> b;
+  const F zero = {};
+  for (int k = 0; k < SH_MAX_BASES; ++k) b.y[k] = b.dx[k] = b.dy[k] = b.dz[k] = zero;
+  b.y[0] = sh_splat<F>(SH_C0);
   if (degree < 1) return b;
   b.y[1] = -SH_C1 * y;
-  b.dy[1] = -SH_C1;
+  b.dy[1] = sh_splat<F>(-SH_C1);
   b.y[2] = SH_C1 * z;
-  b.dz[2] = SH_C1;
+  b.dz[2] = sh_splat<F>(SH_C1);
   b.y[3] = -SH_C1 * x;
-  b.dx[3] = -SH_C1;
+  b.dx[3] = sh_splat<F>(-SH_C1);
   if (degree < 2) return b;
-  const float xx = x * x, yy = y * y, zz = z * z, xy = x * y, yz = y * z, xz = x * z;
+  const F xx = x * x, yy = y * y, zz = z * z, xy = x * y, yz = y * z, xz = x * z;
   b.y[4] = SH_C2_0 * xy;
   b.dx[4] = SH_C2_0 * y;
   b.dy[4] = SH_C2_0 * x;
