@@ -109,6 +109,32 @@ def test_bitwise_identical_for_any_thread_count():
             np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.parametrize("antialias", [False, True])
+def test_each_gaussian_gets_the_bits_it_gets_alone(antialias):
+    """The kernel projects several Gaussians at once (one per vector lane, with selects for the
+    branches, the last batch padded): each one's outputs and gradients, the hard cases of scene()
+    included (on the camera, zero quaternions, flat, points, huge), are bit for bit those of
+    projecting it on its own."""
+    n = 90
+    cam, arrays, rng = scene(n=n, seed=4)
+    cots = [mx.array(rng.normal(0, 1, s).astype(np.float32)) for s in ((n, 2), (n, 3), (n,), (n,))]
+
+    def run(arrs, cs):
+        def f(m, q, s):
+            p = project(cam, [m, q, s], antialias, "cpu")
+            return p["means2d"], p["conics"], p["depths"], p["compensation"]
+
+        outs, grads = mx.vjp(f, arrs, cs)
+        radii = project(cam, arrs, antialias, "cpu")["radii"]
+        return [np.array(a) for a in list(outs) + list(grads) + [radii]]
+
+    together = run(arrays, cots)
+    for i in range(n):
+        alone = run([a[i : i + 1] for a in arrays], [c[i : i + 1] for c in cots])
+        for a, b in zip(together, alone):
+            assert a[i : i + 1].tobytes() == b.tobytes()
+
+
 def test_bad_shapes_are_refused_with_a_message():
     cam, (m, q, s), _ = scene(n=100)
     with pytest.raises(ValueError, match="quats must have shape"):

@@ -3,14 +3,17 @@
 // Forward: means (N,3), quats (N,4), scales (N,3) -> means2d (N,2), conics (N,3), radii (N,)
 // int32, depths (N,), compensation (N,). Backward: the gradients of means, quats and scales
 // from those of means2d, conics, depths and compensation (radii have none). The per-Gaussian
-// math is projection_math.h; each Gaussian is computed by one thread from its own inputs, so
+// math is projection_math.h; each Gaussian is computed by one thread from its own inputs, several
+// at a time (one per vector lane, each lane the float operations of one Gaussian alone), so
 // results are bitwise identical for any thread count. The pure-MLX reference is
 // mlx3d.render.projection.project_ewa(backend='reference').
 #include <nanobind/nanobind.h>
 #include <nanobind/stl/vector.h>
 
+#include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <cstring>
 #include <memory>
 #include <stdexcept>
 #include <string>
@@ -21,6 +24,39 @@
 #include "mlx/ops.h"
 #include "mlx/primitives.h"
 #include "primitive_util.h"
+
+// Lanes: Gaussians computed together, one per lane of a GCC vector of floats (8 lanes: one AVX
+// register in the AVX2 variant, two SSE registers otherwise); other compilers get one per lane, as
+// the SH kernels (sh_color.cpp). No FMA contraction (this file is built with -ffp-contract=off) and
+// correctly rounded sqrt and ceil in every variant, so results depend neither on the lane count
+// nor on the variant.
+#if defined(__GNUC__) && !defined(__clang__)
+#pragma GCC diagnostic ignored "-Wpsabi"  // lane values only cross always-inlined functions
+namespace mlx3d {
+namespace {
+constexpr int kLanes = 8;
+typedef float Lanes __attribute__((vector_size(4 * kLanes)));
+// Lane-wise sqrt and ceil for projection_math.h (declared before it, as its templates look them up).
+inline __attribute__((always_inline)) Lanes pm_sqrt(Lanes x) {
+  for (int j = 0; j < kLanes; ++j) x[j] = __builtin_sqrtf(x[j]);
+  return x;
+}
+inline __attribute__((always_inline)) Lanes pm_ceil(Lanes x) {
+  for (int j = 0; j < kLanes; ++j) x[j] = __builtin_ceilf(x[j]);
+  return x;
+}
+}  // namespace
+}  // namespace mlx3d
+using mlx3d::pm_ceil;
+using mlx3d::pm_sqrt;
+#else
+namespace mlx3d {
+namespace {
+constexpr int kLanes = 1;
+typedef float Lanes;
+}  // namespace
+}  // namespace mlx3d
+#endif
 #include "projection_math.h"
 
 namespace nb = nanobind;
@@ -32,18 +68,71 @@ namespace {
 
 constexpr int kBlock = 4096;  // at least this many Gaussians per thread
 
-inline PmGaussian gaussian_at(const float* means, const float* quats, const float* scales, int64_t i) {
-  PmGaussian g;
-  for (int k = 0; k < 3; ++k) g.mean[k] = means[3 * i + k], g.scale[k] = scales[3 * i + k];
-  for (int k = 0; k < 4; ++k) g.quat[k] = quats[4 * i + k];
+PM_INLINE Lanes load_lanes(const float* p) {
+  Lanes v;
+  std::memcpy(&v, p, sizeof(v));
+  return v;
+}
+
+// Field f of `width` floats per Gaussian, of Gaussians [i0, i0 + count) and the last one repeated, as lanes.
+PM_INLINE Lanes gather(const float* a, int width, int f, int64_t i0, int count) {
+  alignas(32) float t[kLanes];
+  for (int j = 0; j < kLanes; ++j) t[j] = a[(i0 + std::min(j, count - 1)) * width + f];
+  return load_lanes(t);
+}
+
+// Writes the first `count` lanes of v to field f of Gaussians [i0, i0 + count).
+PM_INLINE void scatter(float* a, int width, int f, int64_t i0, int count, Lanes v) {
+  alignas(32) float t[kLanes];
+  std::memcpy(t, &v, sizeof(v));
+  for (int j = 0; j < count; ++j) a[(i0 + j) * width + f] = t[j];
+}
+
+PM_INLINE PmGaussianOf<Lanes> gaussians_at(const float* means, const float* quats, const float* scales, int64_t i0, int count) {
+  PmGaussianOf<Lanes> g;
+  for (int k = 0; k < 3; ++k) g.mean[k] = gather(means, 3, k, i0, count), g.scale[k] = gather(scales, 3, k, i0, count);
+  for (int k = 0; k < 4; ++k) g.quat[k] = gather(quats, 4, k, i0, count);
   return g;
 }
 
-template <typename Fn>
-void for_each_gaussian(int64_t n, int num_threads, const Fn& fn) {
-  parallel_ranges(n, num_threads, kBlock, [fn](int64_t lo, int64_t hi) {
-    for (int64_t i = lo; i < hi; ++i) fn(i);
-  });
+struct ForwardArrays {
+  const float *means, *quats, *scales;
+  float *means2d, *conics, *depths, *compensation;
+  int32_t* radii;
+};
+
+struct BackwardArrays {
+  const float *means, *quats, *scales;
+  const float *d_means2d, *d_conics, *d_depths, *d_compensation;  // (N,2), (N,3), (N,), (N,)
+  float *d_means, *d_quats, *d_scales;
+};
+
+MLX3D_AVX2_CLONES void forward_range(const PmCamera& cam, const ForwardArrays& a, int64_t lo, int64_t hi) {
+  for (int64_t i0 = lo; i0 < hi; i0 += kLanes) {
+    const int count = static_cast<int>(std::min<int64_t>(kLanes, hi - i0));
+    const PmStateOf<Lanes> s = pm_forward(cam, gaussians_at(a.means, a.quats, a.scales, i0, count));
+    for (int k = 0; k < 2; ++k) scatter(a.means2d, 2, k, i0, count, s.means2d[k]);
+    for (int k = 0; k < 3; ++k) scatter(a.conics, 3, k, i0, count, s.conic[k]);
+    scatter(a.depths, 1, 0, i0, count, s.depth);
+    scatter(a.compensation, 1, 0, i0, count, s.compensation);
+    alignas(32) float radius[kLanes];
+    std::memcpy(radius, &s.radius, sizeof(radius));
+    for (int j = 0; j < count; ++j) a.radii[i0 + j] = static_cast<int32_t>(radius[j]);
+  }
+}
+
+MLX3D_AVX2_CLONES void backward_range(const PmCamera& cam, const BackwardArrays& a, int64_t lo, int64_t hi) {
+  for (int64_t i0 = lo; i0 < hi; i0 += kLanes) {
+    const int count = static_cast<int>(std::min<int64_t>(kLanes, hi - i0));
+    const PmGaussianOf<Lanes> g = gaussians_at(a.means, a.quats, a.scales, i0, count);
+    const PmStateOf<Lanes> s = pm_forward(cam, g);
+    const PmGradOf<Lanes> d = pm_backward(cam, g, s, gather(a.d_means2d, 2, 0, i0, count), gather(a.d_means2d, 2, 1, i0, count),
+                                          gather(a.d_conics, 3, 0, i0, count), gather(a.d_conics, 3, 1, i0, count),
+                                          gather(a.d_conics, 3, 2, i0, count), gather(a.d_depths, 1, 0, i0, count),
+                                          gather(a.d_compensation, 1, 0, i0, count));
+    for (int k = 0; k < 3; ++k) scatter(a.d_means, 3, k, i0, count, d.mean[k]), scatter(a.d_scales, 3, k, i0, count, d.scale[k]);
+    for (int k = 0; k < 4; ++k) scatter(a.d_quats, 4, k, i0, count, d.quat[k]);
+  }
 }
 
 class ProjectBase : public CpuPrimitive {
@@ -78,18 +167,12 @@ class ProjectEwaBackward : public ProjectBase {
   // outputs: dL/dmeans, dL/dquats, dL/dscales
   void eval_cpu(const std::vector<mx::array>& inputs, std::vector<mx::array>& outputs) override {
     auto& encoder = prepare_outputs(*this, inputs, outputs);
-    const float *means = inputs[0].data<float>(), *quats = inputs[1].data<float>(), *scales = inputs[2].data<float>();
-    const float *g2 = inputs[3].data<float>(), *gc = inputs[4].data<float>(), *gd = inputs[5].data<float>(), *gk = inputs[6].data<float>();
-    float *dm = outputs[0].data<float>(), *dq = outputs[1].data<float>(), *ds = outputs[2].data<float>();
+    const BackwardArrays a{inputs[0].data<float>(),  inputs[1].data<float>(),  inputs[2].data<float>(),  inputs[3].data<float>(),
+                           inputs[4].data<float>(),  inputs[5].data<float>(),  inputs[6].data<float>(),  outputs[0].data<float>(),
+                           outputs[1].data<float>(), outputs[2].data<float>()};
     const int64_t n = inputs[0].shape(0);
-    encoder.dispatch([=, cam = cam_, threads = num_threads_]() {
-      for_each_gaussian(n, threads, [=](int64_t i) {
-        const PmGaussian g = gaussian_at(means, quats, scales, i);
-        const PmState s = pm_forward(cam, g);
-        const PmGrad d = pm_backward(cam, g, s, g2[2 * i], g2[2 * i + 1], gc[3 * i], gc[3 * i + 1], gc[3 * i + 2], gd[i], gk[i]);
-        for (int k = 0; k < 3; ++k) dm[3 * i + k] = d.mean[k], ds[3 * i + k] = d.scale[k];
-        for (int k = 0; k < 4; ++k) dq[4 * i + k] = d.quat[k];
-      });
+    encoder.dispatch([a, n, cam = cam_, threads = num_threads_]() {
+      parallel_ranges(n, threads, kBlock, [a, cam](int64_t lo, int64_t hi) { backward_range(cam, a, lo, hi); });
     });
   }
 
@@ -111,20 +194,12 @@ class ProjectEwaForward : public ProjectBase {
 
   void eval_cpu(const std::vector<mx::array>& inputs, std::vector<mx::array>& outputs) override {
     auto& encoder = prepare_outputs(*this, inputs, outputs);
-    const float *means = inputs[0].data<float>(), *quats = inputs[1].data<float>(), *scales = inputs[2].data<float>();
-    float *m2 = outputs[0].data<float>(), *con = outputs[1].data<float>(), *dep = outputs[3].data<float>(), *comp = outputs[4].data<float>();
-    int32_t* radii = outputs[2].data<int32_t>();
+    const ForwardArrays a{inputs[0].data<float>(),  inputs[1].data<float>(),  inputs[2].data<float>(),
+                          outputs[0].data<float>(), outputs[1].data<float>(), outputs[3].data<float>(),
+                          outputs[4].data<float>(), outputs[2].data<int32_t>()};
     const int64_t n = inputs[0].shape(0);
-    encoder.dispatch([=, cam = cam_, threads = num_threads_]() {
-      for_each_gaussian(n, threads, [=](int64_t i) {
-        const PmState s = pm_forward(cam, gaussian_at(means, quats, scales, i));
-        m2[2 * i] = s.means2d[0];
-        m2[2 * i + 1] = s.means2d[1];
-        for (int k = 0; k < 3; ++k) con[3 * i + k] = s.conic[k];
-        radii[i] = static_cast<int32_t>(s.radius);
-        dep[i] = s.depth;
-        comp[i] = s.compensation;
-      });
+    encoder.dispatch([a, n, cam = cam_, threads = num_threads_]() {
+      parallel_ranges(n, threads, kBlock, [a, cam](int64_t lo, int64_t hi) { forward_range(cam, a, lo, hi); });
     });
   }
 
