@@ -2,7 +2,9 @@
 // logits -> opacities), as a CPU MLX primitive threaded over elements. Each element is computed by
 // MLX's own scalar function (mlx/backend/cpu/unary_ops.h), so the results are bitwise those of
 // mx.exp / mx.sigmoid, which run on one core (and, on x86-64 Linux, one element at a time); the
-// vjp is MLX's expression, so the gradients are bitwise MLX's too.
+// vjp is MLX's expression, so the gradients are bitwise MLX's too. The element loop inlines MLX's
+// function (flatten) into an FMA variant (MLX3D_FMA_CLONES), where its std::fma calls are one
+// instruction each instead of calls into libm: 3-4x faster, the same bits.
 #include <nanobind/nanobind.h>
 #include <nanobind/stl/string.h>
 
@@ -31,11 +33,14 @@ constexpr int64_t kBlock = 1 << 15;  // at least this many elements per thread
 enum class Kind { kExp, kSigmoid };
 
 template <class Op>
+MLX3D_FMA_CLONES __attribute__((flatten)) void run_range(const float* x, float* y, int64_t lo, int64_t hi) {
+  Op op;
+  for (int64_t i = lo; i < hi; ++i) y[i] = op(x[i]);
+}
+
+template <class Op>
 void run(const float* x, float* y, int64_t n, int num_threads) {
-  parallel_ranges(n, num_threads, kBlock, [x, y](int64_t lo, int64_t hi) {
-    Op op;
-    for (int64_t i = lo; i < hi; ++i) y[i] = op(x[i]);
-  });
+  parallel_ranges(n, num_threads, kBlock, [x, y](int64_t lo, int64_t hi) { run_range<Op>(x, y, lo, hi); });
 }
 
 class Activation : public CpuPrimitive {

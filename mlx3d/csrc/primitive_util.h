@@ -25,10 +25,14 @@
 // x86-64 with GCC on Linux: a function so marked is also compiled for AVX2 and picked at load time
 // (ifunc). Each output element is the same sequence of float operations (no FMA contraction without
 // -mfma), so the results do not depend on the variant.
+// MLX3D_FMA_CLONES: the same with an FMA variant, for code that calls std::fma itself (MLX's scalar
+// exp): there it is one instruction instead of a call into libm, with the same, exactly rounded result.
 #if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && defined(__linux__)
 #define MLX3D_AVX2_CLONES __attribute__((target_clones("avx2", "default")))
+#define MLX3D_FMA_CLONES __attribute__((target_clones("fma", "default")))
 #else
 #define MLX3D_AVX2_CLONES
+#define MLX3D_FMA_CLONES
 #endif
 
 namespace mlx3d {
