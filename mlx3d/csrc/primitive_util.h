@@ -1,10 +1,10 @@
-// Helpers shared by the CPU MLX primitives (rasterize.cpp, sh_color.cpp): threads, output
-// allocation, shape strings.
+// Helpers shared by the CPU MLX primitives: threads, vector lanes, output allocation, shape strings.
 #pragma once
 
 #include <algorithm>
 #include <atomic>
 #include <cstdlib>
+#include <cstring>
 #include <memory>
 #include <new>
 #include <sstream>
@@ -35,7 +35,37 @@
 #define MLX3D_FMA_CLONES
 #endif
 
+#if defined(__GNUC__) && !defined(__clang__)
+// Lane values only cross always-inlined functions, so GCC's note that passing AVX vectors by value
+// changes the calling convention does not apply.
+#pragma GCC diagnostic ignored "-Wpsabi"
+#define MLX3D_VECTOR_LANES 1
+#endif
+
 namespace mlx3d {
+
+// Lanes: elements computed together by the per-Gaussian kernels (sh_color.cpp, projection.cpp), one
+// per lane of a GCC vector of floats: 8, one AVX register in the MLX3D_AVX2_CLONES variant and two SSE
+// registers otherwise; one float with other compilers (as the rasterizer's lanes, rasterize.cpp). Each
+// lane runs the float operations of one element alone, so the results do not depend on the batching.
+#if defined(MLX3D_VECTOR_LANES)
+constexpr int kLanes = 8;
+typedef float Lanes __attribute__((vector_size(4 * kLanes)));
+#define MLX3D_LANES_INLINE inline __attribute__((always_inline))
+#else
+constexpr int kLanes = 1;
+typedef float Lanes;
+#define MLX3D_LANES_INLINE inline
+#endif
+
+// kLanes floats from p (any alignment) as lanes, and back.
+MLX3D_LANES_INLINE Lanes lanes_at(const float* p) {
+  Lanes v;
+  std::memcpy(&v, p, sizeof(v));
+  return v;
+}
+
+MLX3D_LANES_INLINE void put_lanes(float* p, Lanes v) { std::memcpy(p, &v, sizeof(v)); }
 
 // Threads to use for `work_items` items: num_threads (0: all hardware threads), at most one per item.
 inline int resolve_threads(int num_threads, int work_items) {

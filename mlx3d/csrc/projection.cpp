@@ -13,7 +13,6 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
-#include <cstring>
 #include <memory>
 #include <stdexcept>
 #include <string>
@@ -25,37 +24,18 @@
 #include "mlx/primitives.h"
 #include "primitive_util.h"
 
-// Lanes: Gaussians computed together, one per lane of a GCC vector of floats (8 lanes: one AVX
-// register in the AVX2 variant, two SSE registers otherwise); other compilers get one per lane, as
-// the SH kernels (sh_color.cpp). No FMA contraction (this file is built with -ffp-contract=off) and
-// correctly rounded sqrt and ceil in every variant, so results depend neither on the lane count
-// nor on the variant.
-#if defined(__GNUC__) && !defined(__clang__)
-#pragma GCC diagnostic ignored "-Wpsabi"  // lane values only cross always-inlined functions
-namespace mlx3d {
-namespace {
-constexpr int kLanes = 8;
-typedef float Lanes __attribute__((vector_size(4 * kLanes)));
-// Lane-wise sqrt and ceil for projection_math.h (declared before it, as its templates look them up).
-inline __attribute__((always_inline)) Lanes pm_sqrt(Lanes x) {
-  for (int j = 0; j < kLanes; ++j) x[j] = __builtin_sqrtf(x[j]);
+// Lane-wise sqrt and ceil for projection_math.h (declared before it, as its templates look them up);
+// both correctly rounded in every variant, and the file is built without FMA contraction, so the
+// results do not depend on the lanes.
+#if defined(MLX3D_VECTOR_LANES)
+MLX3D_LANES_INLINE mlx3d::Lanes pm_sqrt(mlx3d::Lanes x) {
+  for (int j = 0; j < mlx3d::kLanes; ++j) x[j] = __builtin_sqrtf(x[j]);
   return x;
 }
-inline __attribute__((always_inline)) Lanes pm_ceil(Lanes x) {
-  for (int j = 0; j < kLanes; ++j) x[j] = __builtin_ceilf(x[j]);
+MLX3D_LANES_INLINE mlx3d::Lanes pm_ceil(mlx3d::Lanes x) {
+  for (int j = 0; j < mlx3d::kLanes; ++j) x[j] = __builtin_ceilf(x[j]);
   return x;
 }
-}  // namespace
-}  // namespace mlx3d
-using mlx3d::pm_ceil;
-using mlx3d::pm_sqrt;
-#else
-namespace mlx3d {
-namespace {
-constexpr int kLanes = 1;
-typedef float Lanes;
-}  // namespace
-}  // namespace mlx3d
 #endif
 #include "projection_math.h"
 
@@ -68,23 +48,17 @@ namespace {
 
 constexpr int kBlock = 4096;  // at least this many Gaussians per thread
 
-PM_INLINE Lanes load_lanes(const float* p) {
-  Lanes v;
-  std::memcpy(&v, p, sizeof(v));
-  return v;
-}
-
 // Field f of `width` floats per Gaussian, of Gaussians [i0, i0 + count) and the last one repeated, as lanes.
 PM_INLINE Lanes gather(const float* a, int width, int f, int64_t i0, int count) {
   alignas(32) float t[kLanes];
   for (int j = 0; j < kLanes; ++j) t[j] = a[(i0 + std::min(j, count - 1)) * width + f];
-  return load_lanes(t);
+  return lanes_at(t);
 }
 
 // Writes the first `count` lanes of v to field f of Gaussians [i0, i0 + count).
 PM_INLINE void scatter(float* a, int width, int f, int64_t i0, int count, Lanes v) {
   alignas(32) float t[kLanes];
-  std::memcpy(t, &v, sizeof(v));
+  put_lanes(t, v);
   for (int j = 0; j < count; ++j) a[(i0 + j) * width + f] = t[j];
 }
 
@@ -116,7 +90,7 @@ MLX3D_AVX2_CLONES void forward_range(const PmCamera& cam, const ForwardArrays& a
     scatter(a.depths, 1, 0, i0, count, s.depth);
     scatter(a.compensation, 1, 0, i0, count, s.compensation);
     alignas(32) float radius[kLanes];
-    std::memcpy(radius, &s.radius, sizeof(radius));
+    put_lanes(radius, s.radius);
     for (int j = 0; j < count; ++j) a.radii[i0 + j] = static_cast<int32_t>(radius[j]);
   }
 }

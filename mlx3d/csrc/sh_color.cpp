@@ -13,7 +13,6 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
-#include <cstring>
 #include <memory>
 #include <stdexcept>
 #include <string>
@@ -24,9 +23,6 @@
 #include "mlx/ops.h"
 #include "mlx/primitives.h"
 #include "primitive_util.h"
-#if defined(__GNUC__) && !defined(__clang__)
-#pragma GCC diagnostic ignored "-Wpsabi"  // vector lanes (below) only cross always-inlined functions
-#endif
 #include "sh_math.h"
 
 namespace nb = nanobind;
@@ -63,27 +59,6 @@ ShInputs sh_inputs(const std::vector<mx::array>& inputs, int blocks, int degree)
   return in;
 }
 
-// Lanes: Gaussians computed together, one per lane of a GCC vector of floats (8 lanes: one AVX
-// register in the AVX2 variant, two SSE registers otherwise); other compilers get one per lane, as
-// the rasterizer's lanes (rasterize.cpp). Each lane runs exactly the float operations of the
-// one-Gaussian code (no FMA contraction: this file is built with -ffp-contract=off), so results do
-// not depend on the lane count or the variant.
-#if defined(__GNUC__) && !defined(__clang__)
-constexpr int kLanes = 8;
-typedef float Lanes __attribute__((vector_size(4 * kLanes)));
-#else
-constexpr int kLanes = 1;
-typedef float Lanes;
-#endif
-
-SH_INLINE Lanes load_lanes(const float* p) {
-  Lanes v;
-  std::memcpy(&v, p, sizeof(v));
-  return v;
-}
-
-SH_INLINE void store_lanes(float* p, Lanes v) { std::memcpy(p, &v, sizeof(v)); }
-
 // Up to kLanes consecutive Gaussians [i0, i0 + count), lanes past `count` repeating the last one, with
 // their directions and first `bases` coefficients gathered lane-wise (coef[3k + c][lane]).
 struct Batch {
@@ -117,8 +92,8 @@ SH_INLINE void gather(const ShInputs& in, int64_t i0, int64_t hi, int bases, Bat
 // Unclamped colours of a batch seen along the basis y (lane-wise), summed in k order.
 SH_INLINE void colour_of(const Batch& batch, int bases, const Lanes* y, Lanes* colour) {
   for (int ch = 0; ch < 3; ++ch) {
-    Lanes acc = y[0] * load_lanes(batch.coef[ch]);
-    for (int k = 1; k < bases; ++k) acc = acc + y[k] * load_lanes(batch.coef[3 * k + ch]);
+    Lanes acc = y[0] * lanes_at(batch.coef[ch]);
+    for (int k = 1; k < bases; ++k) acc = acc + y[k] * lanes_at(batch.coef[3 * k + ch]);
     colour[ch] = acc + 0.5f;
   }
 }
@@ -128,11 +103,11 @@ MLX3D_AVX2_CLONES void forward_range(const ShInputs& in, int64_t lo, int64_t hi,
   Batch batch;
   for (int64_t i0 = lo; i0 < hi; i0 += kLanes) {
     gather(in, i0, hi, bases, batch);
-    const ShBasisOf<Lanes> b = sh_basis(in.degree, load_lanes(batch.x), load_lanes(batch.y), load_lanes(batch.z));
+    const ShBasisOf<Lanes> b = sh_basis(in.degree, lanes_at(batch.x), lanes_at(batch.y), lanes_at(batch.z));
     Lanes colour[3];
     colour_of(batch, bases, b.y, colour);
     alignas(32) float c[3][kLanes];
-    for (int ch = 0; ch < 3; ++ch) store_lanes(c[ch], colour[ch]);
+    for (int ch = 0; ch < 3; ++ch) put_lanes(c[ch], colour[ch]);
     for (int j = 0; j < batch.count; ++j)
       for (int ch = 0; ch < 3; ++ch) rgb[3 * (i0 + j) + ch] = c[ch][j] > 0.0f ? c[ch][j] : 0.0f;
   }
@@ -146,21 +121,21 @@ MLX3D_AVX2_CLONES void backward_range(const ShInputs& in, const float* cot, floa
   alignas(32) float ds[3 * SH_MAX_BASES][kLanes];  // dL/dsh[k][c] of each lane, for k < bases
   for (int64_t i0 = lo; i0 < hi; i0 += kLanes) {
     gather(in, i0, hi, bases, batch);
-    const ShBasisOf<Lanes> b = sh_basis(in.degree, load_lanes(batch.x), load_lanes(batch.y), load_lanes(batch.z));
+    const ShBasisOf<Lanes> b = sh_basis(in.degree, lanes_at(batch.x), lanes_at(batch.y), lanes_at(batch.z));
     Lanes colour[3];
     colour_of(batch, bases, b.y, colour);
     // dL/dcolour: the cotangent where the colour is above the clamp, else 0.
     alignas(32) float c[3][kLanes], g[3][kLanes];
-    for (int ch = 0; ch < 3; ++ch) store_lanes(c[ch], colour[ch]);
+    for (int ch = 0; ch < 3; ++ch) put_lanes(c[ch], colour[ch]);
     for (int j = 0; j < kLanes; ++j)
       for (int ch = 0; ch < 3; ++ch) g[ch][j] = c[ch][j] > 0.0f ? cot[3 * (i0 + std::min(j, batch.count - 1)) + ch] : 0.0f;
-    const Lanes gl[3] = {load_lanes(g[0]), load_lanes(g[1]), load_lanes(g[2])};
+    const Lanes gl[3] = {lanes_at(g[0]), lanes_at(g[1]), lanes_at(g[2])};
     Lanes gx = {}, gy = {}, gz = {};
     for (int k = 0; k < bases; ++k) {
       Lanes along = {};  // Σ_c g_c sh[k][c]
       for (int ch = 0; ch < 3; ++ch) {
-        store_lanes(ds[3 * k + ch], gl[ch] * b.y[k]);
-        along = along + gl[ch] * load_lanes(batch.coef[3 * k + ch]);
+        put_lanes(ds[3 * k + ch], gl[ch] * b.y[k]);
+        along = along + gl[ch] * lanes_at(batch.coef[3 * k + ch]);
       }
       if (k > 0) {
         gx = gx + along * b.dx[k];
@@ -169,9 +144,9 @@ MLX3D_AVX2_CLONES void backward_range(const ShInputs& in, const float* cot, floa
       }
     }
     alignas(32) float gxs[kLanes], gys[kLanes], gzs[kLanes];
-    store_lanes(gxs, gx);
-    store_lanes(gys, gy);
-    store_lanes(gzs, gz);
+    put_lanes(gxs, gx);
+    put_lanes(gys, gy);
+    put_lanes(gzs, gz);
     for (int j = 0; j < batch.count; ++j) {
       const int64_t i = i0 + j;
       int q0 = 0;  // first float of the block in ds
