@@ -62,7 +62,6 @@ ShInputs sh_inputs(const std::vector<mx::array>& inputs, int blocks, int degree)
 // Up to kLanes consecutive Gaussians [i0, i0 + count), lanes past `count` repeating the last one, with
 // their directions and first `bases` coefficients gathered lane-wise (coef[3k + c][lane]).
 struct Batch {
-  int64_t i0;
   int count;
   ShDir dir[kLanes];
   alignas(32) float x[kLanes], y[kLanes], z[kLanes];
@@ -70,7 +69,6 @@ struct Batch {
 };
 
 SH_INLINE void gather(const ShInputs& in, int64_t i0, int64_t hi, int bases, Batch& b) {
-  b.i0 = i0;
   b.count = static_cast<int>(std::min<int64_t>(kLanes, hi - i0));
   for (int j = 0; j < kLanes; ++j) {
     const int64_t i = i0 + std::min(j, b.count - 1);

@@ -60,11 +60,11 @@ typedef ShBasisOf<float> ShBasis;
 
 inline int sh_num_bases(int degree) { return (degree + 1) * (degree + 1); }
 
-// All lanes = v (exactly: 0 + v).
+// All lanes = v, exactly (v - (+0) is v for every v, -0 included).
 template <typename F>
 SH_INLINE F sh_splat(float v) {
-  F zero = {};
-  return zero + v;
+  const F zero = {};
+  return v - zero;
 }
 
 template <typename F>
