@@ -49,20 +49,20 @@ namespace {
 constexpr int kBlock = 4096;  // at least this many Gaussians per thread
 
 // Field f of `width` floats per Gaussian, of Gaussians [i0, i0 + count) and the last one repeated, as lanes.
-PM_INLINE Lanes gather(const float* a, int width, int f, int64_t i0, int count) {
+MLX3D_LANES_INLINE Lanes gather(const float* a, int width, int f, int64_t i0, int count) {
   alignas(32) float t[kLanes];
   for (int j = 0; j < kLanes; ++j) t[j] = a[(i0 + std::min(j, count - 1)) * width + f];
   return lanes_at(t);
 }
 
 // Writes the first `count` lanes of v to field f of Gaussians [i0, i0 + count).
-PM_INLINE void scatter(float* a, int width, int f, int64_t i0, int count, Lanes v) {
+MLX3D_LANES_INLINE void scatter(float* a, int width, int f, int64_t i0, int count, Lanes v) {
   alignas(32) float t[kLanes];
   put_lanes(t, v);
   for (int j = 0; j < count; ++j) a[(i0 + j) * width + f] = t[j];
 }
 
-PM_INLINE PmGaussianOf<Lanes> gaussians_at(const float* means, const float* quats, const float* scales, int64_t i0, int count) {
+MLX3D_LANES_INLINE PmGaussianOf<Lanes> gaussians_at(const float* means, const float* quats, const float* scales, int64_t i0, int count) {
   PmGaussianOf<Lanes> g;
   for (int k = 0; k < 3; ++k) g.mean[k] = gather(means, 3, k, i0, count), g.scale[k] = gather(scales, 3, k, i0, count);
   for (int k = 0; k < 4; ++k) g.quat[k] = gather(quats, 4, k, i0, count);

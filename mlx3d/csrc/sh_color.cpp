@@ -68,7 +68,7 @@ struct Batch {
   alignas(32) float coef[3 * SH_MAX_BASES][kLanes];
 };
 
-SH_INLINE void gather(const ShInputs& in, int64_t i0, int64_t hi, int bases, Batch& b) {
+MLX3D_LANES_INLINE void gather(const ShInputs& in, int64_t i0, int64_t hi, int bases, Batch& b) {
   b.count = static_cast<int>(std::min<int64_t>(kLanes, hi - i0));
   for (int j = 0; j < kLanes; ++j) {
     const int64_t i = i0 + std::min(j, b.count - 1);
@@ -88,7 +88,7 @@ SH_INLINE void gather(const ShInputs& in, int64_t i0, int64_t hi, int bases, Bat
 }
 
 // Unclamped colours of a batch seen along the basis y (lane-wise), summed in k order.
-SH_INLINE void colour_of(const Batch& batch, int bases, const Lanes* y, Lanes* colour) {
+MLX3D_LANES_INLINE void colour_of(const Batch& batch, int bases, const Lanes* y, Lanes* colour) {
   for (int ch = 0; ch < 3; ++ch) {
     Lanes acc = y[0] * lanes_at(batch.coef[ch]);
     for (int k = 1; k < bases; ++k) acc = acc + y[k] * lanes_at(batch.coef[3 * k + ch]);
