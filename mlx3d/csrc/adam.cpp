@@ -83,10 +83,6 @@ MLX3D_AVX2_CLONES void param_range(const float* p, const float* m, const float* 
   }
 }
 
-void run_param(const float* p, const float* m, const float* v, float* p_out, int64_t n, AdamScalars s, int num_threads) {
-  parallel_ranges(n, num_threads, kBlock, [=](int64_t lo, int64_t hi) { param_range(p, m, v, p_out, s, lo, hi); });
-}
-
 // `out` over input k's buffer where MLX may donate it (nothing else holds it; MLX's rule) and no other input
 // shares it, else a fresh buffer.
 void output_over(const std::vector<mx::array>& inputs, int k, mx::array& out) {
@@ -157,7 +153,9 @@ class AdamParam : public AdamBase {
     const float *pp = p.data<float>(), *m = inputs[1].data<float>(), *v = inputs[2].data<float>();
     float* po = outputs[0].data<float>();
     const int64_t n = p.size();
-    encoder.dispatch([=, s = s_, threads = num_threads_]() { run_param(pp, m, v, po, n, s, threads); });
+    encoder.dispatch([=, s = s_, threads = num_threads_]() {
+      parallel_ranges(n, threads, kBlock, [=](int64_t lo, int64_t hi) { param_range(pp, m, v, po, s, lo, hi); });
+    });
   }
 
   std::vector<mx::Shape> output_shapes(const std::vector<mx::array>& inputs) override { return {inputs[0].shape()}; }

@@ -63,8 +63,7 @@ ShInputs sh_inputs(const std::vector<mx::array>& inputs, int blocks, int degree)
 // their directions and first `bases` coefficients gathered lane-wise (coef[3k + c][lane]).
 struct Batch {
   int count;
-  ShDir dir[kLanes];
-  alignas(32) float x[kLanes], y[kLanes], z[kLanes];
+  alignas(32) float x[kLanes], y[kLanes], z[kLanes], inv_norm[kLanes];  // the directions (ShDir), lane-wise
   alignas(32) float coef[3 * SH_MAX_BASES][kLanes];
 };
 
@@ -73,10 +72,11 @@ MLX3D_LANES_INLINE void gather(const ShInputs& in, int64_t i0, int64_t hi, int b
   for (int j = 0; j < kLanes; ++j) {
     const int64_t i = i0 + std::min(j, b.count - 1);
     const float* m = in.means + 3 * i;
-    b.dir[j] = sh_direction(m[0] - in.centre[0], m[1] - in.centre[1], m[2] - in.centre[2]);
-    b.x[j] = b.dir[j].x;
-    b.y[j] = b.dir[j].y;
-    b.z[j] = b.dir[j].z;
+    const ShDir u = sh_direction(m[0] - in.centre[0], m[1] - in.centre[1], m[2] - in.centre[2]);
+    b.x[j] = u.x;
+    b.y[j] = u.y;
+    b.z[j] = u.z;
+    b.inv_norm[j] = u.inv_norm;
     int q0 = 0;  // first float of the block in coef
     for (int blk = 0; blk < 2 && q0 < 3 * bases; ++blk) {
       const float* c = in.block[blk] + i * 3 * in.kb[blk];
@@ -155,7 +155,8 @@ MLX3D_AVX2_CLONES void backward_range(const ShInputs& in, const float* cot, floa
         for (int q = live; q < floats; ++q) d[q] = 0.0f;
         q0 += floats;
       }
-      const ShVec3 dm = sh_direction_vjp(batch.dir[j], gxs[j], gys[j], gzs[j]);
+      const ShDir u{batch.x[j], batch.y[j], batch.z[j], batch.inv_norm[j]};
+      const ShVec3 dm = sh_direction_vjp(u, gxs[j], gys[j], gzs[j]);
       d_means[3 * i] = dm.x;
       d_means[3 * i + 1] = dm.y;
       d_means[3 * i + 2] = dm.z;
