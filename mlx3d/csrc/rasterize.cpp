@@ -869,6 +869,64 @@ RM_INLINE void forward_tile_impl(const Inputs& in, const Geometry& geo, int t, S
   }
 }
 
+// Lanes l of vectors r[0..L) as vector l, for l < L (L = 4 or 8 lanes).
+template <class LF>
+RM_INLINE void transpose_lanes(const LF* r, LF* c) {
+#if defined(MLX3D_RASTER_VECTOR_LANES)
+  if constexpr (lanes_of<LF>() == 8) {
+    LF t[8], u[8];
+    for (int i = 0; i < 8; i += 2) {
+      t[i] = __builtin_shufflevector(r[i], r[i + 1], 0, 8, 1, 9, 4, 12, 5, 13);
+      t[i + 1] = __builtin_shufflevector(r[i], r[i + 1], 2, 10, 3, 11, 6, 14, 7, 15);
+    }
+    for (int i = 0; i < 8; i += 4)
+      for (int h = 0; h < 2; ++h) {
+        u[i + 2 * h] = __builtin_shufflevector(t[i + h], t[i + h + 2], 0, 1, 8, 9, 4, 5, 12, 13);
+        u[i + 2 * h + 1] = __builtin_shufflevector(t[i + h], t[i + h + 2], 2, 3, 10, 11, 6, 7, 14, 15);
+      }
+    // u[0..4): lanes 0-3 of r[0..4) in their low halves (lane l of u[l']: l' = l % 4), lanes 4-7 in
+    // their high halves; u[4..8) the same for r[4..8).
+    for (int l = 0; l < 4; ++l) {
+      c[l] = __builtin_shufflevector(u[l], u[l + 4], 0, 1, 2, 3, 8, 9, 10, 11);
+      c[l + 4] = __builtin_shufflevector(u[l], u[l + 4], 4, 5, 6, 7, 12, 13, 14, 15);
+    }
+    return;
+  } else if constexpr (lanes_of<LF>() == 4) {
+    const LF t0 = __builtin_shufflevector(r[0], r[1], 0, 4, 1, 5), t1 = __builtin_shufflevector(r[0], r[1], 2, 6, 3, 7);
+    const LF t2 = __builtin_shufflevector(r[2], r[3], 0, 4, 1, 5), t3 = __builtin_shufflevector(r[2], r[3], 2, 6, 3, 7);
+    c[0] = __builtin_shufflevector(t0, t2, 0, 1, 4, 5);
+    c[1] = __builtin_shufflevector(t0, t2, 2, 3, 6, 7);
+    c[2] = __builtin_shufflevector(t1, t3, 0, 1, 4, 5);
+    c[3] = __builtin_shufflevector(t1, t3, 2, 3, 6, 7);
+    return;
+  }
+#endif
+  c[0] = r[0];
+}
+
+// out[j] = sum of the lanes of v[j] in lane order, from +0 (((0 + lane 0) + lane 1) + ...), for
+// j < count. Groups of L vectors are transposed, so that their L sums run side by side, one per lane,
+// each with the same additions in the same order: the bits do not depend on the grouping.
+template <class LF>
+RM_INLINE void lane_totals(const LF* v, size_t count, float* out) {
+  constexpr int L = lanes_of<LF>();
+  size_t j = 0;
+  for (; j + L <= count; j += L) {
+    LF c[L];
+    transpose_lanes(v + j, c);
+    LF total{};
+    for (int l = 0; l < L; ++l) total += c[l];
+    store_lanes(out + j, total);
+  }
+  for (; j < count; ++j) {
+    float lanes[L];
+    store_lanes(lanes, v[j]);
+    float total = 0.0f;
+    for (int l = 0; l < L; ++l) total += lanes[l];
+    out[j] = total;
+  }
+}
+
 struct BackwardIn {
   const int32_t* last;
   const float* final_T;
@@ -1017,14 +1075,7 @@ RM_INLINE void backward_tile_impl(const Inputs& in, const Geometry& geo, int t, 
       }
     }
   }
-  // Lane sums in a fixed order.
-  float v[kLanes];
-  for (size_t j = 0; j < static_cast<size_t>(kmax) * K; ++j) {
-    store_lanes(v, sums[j]);
-    float total = 0.0f;
-    for (int l = 0; l < kLanes; ++l) total += v[l];
-    entry_grad[j] = total;
-  }
+  lane_totals(sums, static_cast<size_t>(kmax) * K, entry_grad);
 }
 
 // ------------------------------------------------------------- variants
