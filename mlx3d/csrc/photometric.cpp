@@ -23,6 +23,7 @@
 #include <optional>
 #include <stdexcept>
 #include <string>
+#include <type_traits>
 #include <vector>
 
 #include "bindings.h"
@@ -48,44 +49,82 @@ struct Image {
   size_t size() const { return size_t(h) * w * c; }
 };
 
-// The row passes below are also compiled for AVX2 (MLX3D_AVX2_CLONES, primitive_util.h).
+// F: float or Lanes (one element or kLanes consecutive ones).
+template <class F>
+MLX3D_LANES_INLINE F load_as(const float* p) {
+  if constexpr (std::is_same_v<F, float>)
+    return *p;
+  else
+    return lanes_at(p);
+}
+
+template <class F>
+MLX3D_LANES_INLINE void store_as(float* p, F v) {
+  if constexpr (std::is_same_v<F, float>)
+    *p = v;
+  else
+    put_lanes(p, v);
+}
+
+// The row passes below are also compiled for AVX2 (MLX3D_AVX2_CLONES, primitive_util.h). Each output
+// element is taps[r] * centre, then + taps[k] * (the two elements r - k away) for k = 0 .. r - 1, in that
+// order. The passes run over 4 lane groups of a row at a time, whose sums stay in registers over all the
+// taps (one store per element instead of one per tap).
+
+// out[j..j + U F) = taps[r] * mid + sum over k of taps[k] * (a_k + d_k) there, where a_k or d_k is null
+// outside the image (a zero term, left out).
+template <class F, int U>
+MLX3D_LANES_INLINE void filter_at(float* out, const float* mid, const float* const* a, const float* const* d,
+                                  const float* taps, int r, int j) {
+  constexpr int kStep = sizeof(F) / sizeof(float);
+  F acc[U];
+  for (int u = 0; u < U; ++u) acc[u] = taps[r] * load_as<F>(mid + j + u * kStep);
+  for (int k = 0; k < r; ++k) {
+    const float t = taps[k];
+    if (a[k] && d[k])
+      for (int u = 0; u < U; ++u) acc[u] += t * (load_as<F>(a[k] + j + u * kStep) + load_as<F>(d[k] + j + u * kStep));
+    else if (a[k])
+      for (int u = 0; u < U; ++u) acc[u] += t * load_as<F>(a[k] + j + u * kStep);
+    else if (d[k])
+      for (int u = 0; u < U; ++u) acc[u] += t * load_as<F>(d[k] + j + u * kStep);
+  }
+  for (int u = 0; u < U; ++u) store_as(out + j + u * kStep, acc[u]);
+}
+
+// filter_at over elements [0, n).
+MLX3D_LANES_INLINE void filter_span(float* out, const float* mid, const float* const* a, const float* const* d,
+                                    const float* taps, int r, int n) {
+  int j = 0;
+  for (; j + 4 * kLanes <= n; j += 4 * kLanes) filter_at<Lanes, 4>(out, mid, a, d, taps, r, j);
+  for (; j < n; ++j) filter_at<float, 1>(out, mid, a, d, taps, r, j);
+}
+
 // Rows [lo, hi) of the vertical pass: tmp = the column filter of src (zero-padded).
 MLX3D_AVX2_CLONES void vertical_rows(const float* src, float* tmp, Image im, const float* taps, int r, int64_t lo, int64_t hi) {
   const int rowlen = im.w * im.c;
+  std::vector<const float*> a(r), d(r);
   for (int i = int(lo); i < int(hi); ++i) {
-    float* out = tmp + size_t(i) * rowlen;
-    const float* mid = src + size_t(i) * rowlen;
-    for (int j = 0; j < rowlen; ++j) out[j] = taps[r] * mid[j];
     for (int k = 0; k < r; ++k) {
       const int up = i - r + k, down = i + r - k;
-      const float t = taps[k];
-      const float* a = up >= 0 ? src + size_t(up) * rowlen : nullptr;
-      const float* d = down < im.h ? src + size_t(down) * rowlen : nullptr;
-      if (a && d)
-        for (int j = 0; j < rowlen; ++j) out[j] += t * (a[j] + d[j]);
-      else if (a)
-        for (int j = 0; j < rowlen; ++j) out[j] += t * a[j];
-      else if (d)
-        for (int j = 0; j < rowlen; ++j) out[j] += t * d[j];
+      a[k] = up >= 0 ? src + size_t(up) * rowlen : nullptr;
+      d[k] = down < im.h ? src + size_t(down) * rowlen : nullptr;
     }
+    filter_span(tmp + size_t(i) * rowlen, src + size_t(i) * rowlen, a.data(), d.data(), taps, r, rowlen);
   }
 }
 
 // Rows [lo, hi) of the horizontal pass: dst = the row filter of tmp, each row copied into a
-// zero-padded scratch row `row` (rowlen + 2 r C floats; branch-free, vectorisable).
+// zero-padded scratch row `row` (rowlen + 2 r C floats; branch-free).
 MLX3D_AVX2_CLONES void horizontal_rows(const float* tmp, float* dst, float* row, Image im, const float* taps, int r, int64_t lo, int64_t hi) {
   const int rowlen = im.w * im.c, pad = r * im.c;
+  std::vector<const float*> a(r), d(r);
+  for (int k = 0; k < r; ++k) {
+    a[k] = row + k * im.c;            // offset -(r - k) pixels
+    d[k] = row + (2 * r - k) * im.c;  // offset +(r - k) pixels
+  }
   for (int i = int(lo); i < int(hi); ++i) {
     std::copy(tmp + size_t(i) * rowlen, tmp + size_t(i + 1) * rowlen, row + pad);
-    float* out = dst + size_t(i) * rowlen;
-    const float* centre = row + pad;
-    for (int j = 0; j < rowlen; ++j) out[j] = taps[r] * centre[j];
-    for (int k = 0; k < r; ++k) {
-      const float t = taps[k];
-      const float* a = row + k * im.c;            // offset -(r - k) pixels
-      const float* d = row + (2 * r - k) * im.c;  // offset +(r - k) pixels
-      for (int j = 0; j < rowlen; ++j) out[j] += t * (a[j] + d[j]);
-    }
+    filter_span(dst + size_t(i) * rowlen, row + pad, a.data(), d.data(), taps, r, rowlen);
   }
 }
 
@@ -99,6 +138,75 @@ void blur(const float* src, float* dst, float* tmp, Image im, const std::vector<
     std::vector<float> scratch(im.w * im.c + 2 * r * im.c, 0.0f);
     horizontal_rows(tmp, dst, scratch.data(), im, taps.data(), r, lo, hi);
   });
+}
+
+struct SsimMaps {
+  const float *x, *y, *mu_x, *mu_y, *e_xx, *e_yy, *e_xy;  // (H,W,C): the images and their filtered maps
+  float *d_mu, *d_xx, *d_xy;                              // (H,W,C) out: g ∂S/∂μx, g ∂S/∂E[x²], g ∂S/∂E[xy]
+};
+
+template <class F>
+MLX3D_LANES_INLINE F abs_of(F v) {
+#if defined(MLX3D_VECTOR_LANES)
+  if constexpr (!std::is_same_v<F, float>) {
+    typedef int32_t Bits __attribute__((vector_size(sizeof(F))));
+    return (F)((Bits)v & 0x7fffffff);  // fabs per lane: the sign bit cleared
+  } else
+#endif
+    return std::fabs(v);
+}
+
+// Element(s) q = base + j of the SSIM map pass: the d_* maps, the SSIM s and |x - y| (to s_row[j],
+// l_row[j]), with g = g_row[j].
+template <class F>
+MLX3D_LANES_INLINE void ssim_element(const SsimMaps& m, const float* g_row, float* s_row, float* l_row, size_t base, int j) {
+  const size_t q = base + j;
+  const F m1 = load_as<F>(m.mu_x + q), m2 = load_as<F>(m.mu_y + q);
+  const F s11 = load_as<F>(m.e_xx + q) - m1 * m1, s22 = load_as<F>(m.e_yy + q) - m2 * m2;
+  const F s12 = load_as<F>(m.e_xy + q) - m1 * m2;
+  const F a1 = 2.0f * m1 * m2 + kC1, a2 = 2.0f * s12 + kC2;
+  const F b1 = m1 * m1 + m2 * m2 + kC1, b2 = s11 + s22 + kC2;
+  const F den = b1 * b2, s = a1 * a2 / den;
+  const F ds_a1 = a2 / den, ds_a2 = a1 / den, ds_b1 = -s / b1, ds_b2 = -s / b2;
+  const F g = load_as<F>(g_row + j);
+  store_as(s_row + j, s);
+  store_as(l_row + j, abs_of(load_as<F>(m.x + q) - load_as<F>(m.y + q)));
+  store_as(m.d_mu + q, g * (ds_a1 * 2.0f * m2 - ds_a2 * 2.0f * m2 + ds_b1 * 2.0f * m1 - ds_b2 * 2.0f * m1));
+  store_as(m.d_xx + q, g * ds_b2);
+  store_as(m.d_xy + q, g * 2.0f * ds_a2);
+}
+
+// Row i of the SSIM map pass: the d_* maps of its elements, and the row's w-weighted sums of the
+// per-pixel L1 and SSIM (each the mean over channels). The elements run in lanes; each pixel's channel
+// sums and the row's float64 sums are then taken in order, so the results do not depend on the lanes.
+// scratch: 3 W C floats.
+MLX3D_AVX2_CLONES void ssim_row(const SsimMaps& m, const float* w, Image im, float lambda, double inv_w, int i,
+                                float* scratch, double& row_l1, double& row_ssim) {
+  const int rowlen = im.w * im.c;
+  const size_t base = size_t(i) * rowlen;
+  const float inv_c = 1.0f / im.c;
+  float *g_row = scratch, *s_row = scratch + rowlen, *l_row = scratch + 2 * rowlen;
+  for (int xj = 0; xj < im.w; ++xj) {
+    const float wp = w ? w[size_t(i) * im.w + xj] : 1.0f;
+    const float g = static_cast<float>(-lambda * wp * inv_w) * inv_c;
+    for (int ch = 0; ch < im.c; ++ch) g_row[xj * im.c + ch] = g;
+  }
+  int j = 0;
+  for (; j + kLanes <= rowlen; j += kLanes) ssim_element<Lanes>(m, g_row, s_row, l_row, base, j);
+  for (; j < rowlen; ++j) ssim_element<float>(m, g_row, s_row, l_row, base, j);
+  double l1 = 0.0, ssim = 0.0;
+  for (int xj = 0; xj < im.w; ++xj) {
+    const float wp = w ? w[size_t(i) * im.w + xj] : 1.0f;
+    float sp = 0.0f, lp = 0.0f;
+    for (int ch = 0; ch < im.c; ++ch) {
+      sp += s_row[xj * im.c + ch];
+      lp += l_row[xj * im.c + ch];
+    }
+    l1 += double(wp) * (lp * inv_c);
+    ssim += double(wp) * (sp * inv_c);
+  }
+  row_l1 = l1;
+  row_ssim = ssim;
 }
 
 // loss (one float) and dL/dx (H,W,C) of x against y, weights w (H,W) or null.
@@ -134,39 +242,14 @@ void run_loss(const float* x, const float* y, const float* w, Image im, float la
   float* d_xx = tmp.data();
   ScratchFloats d_xy_buf(n);
   float* d_xy = d_xy_buf.data();
-  const float inv_c = 1.0f / im.c;
-  parallel_ranges(im.h, num_threads, kRows, [=, mu_x = mu_x.data(), mu_y = mu_y.data(), e_xx = e_xx.data(), e_yy = e_yy.data(),
-                                  e_xy = e_xy.data(), row_l1 = row_l1.data(), row_ssim = row_ssim.data()](int64_t lo, int64_t hi) {
-    for (int i = int(lo); i < int(hi); ++i) {
-      double l1 = 0.0, ssim = 0.0;
-      for (int xj = 0; xj < im.w; ++xj) {
-        const int p = i * im.w + xj;
-        const float wp = w ? w[p] : 1.0f;
-        const float g = static_cast<float>(-lambda * wp * inv_w) * inv_c;
-        float sp = 0.0f, lp = 0.0f;
-        for (int ch = 0; ch < im.c; ++ch) {
-          const size_t q = size_t(p) * im.c + ch;
-          const float m1 = mu_x[q], m2 = mu_y[q];
-          const float s11 = e_xx[q] - m1 * m1, s22 = e_yy[q] - m2 * m2, s12 = e_xy[q] - m1 * m2;
-          const float a1 = 2.0f * m1 * m2 + kC1, a2 = 2.0f * s12 + kC2;
-          const float b1 = m1 * m1 + m2 * m2 + kC1, b2 = s11 + s22 + kC2;
-          const float den = b1 * b2, s = a1 * a2 / den;
-          sp += s;
-          lp += std::fabs(x[q] - y[q]);
-          const float ds_a1 = a2 / den, ds_a2 = a1 / den, ds_b1 = -s / b1, ds_b2 = -s / b2;
-          d_mu[q] = g * (ds_a1 * 2.0f * m2 - ds_a2 * 2.0f * m2 + ds_b1 * 2.0f * m1 - ds_b2 * 2.0f * m1);
-          d_xx[q] = g * ds_b2;
-          d_xy[q] = g * 2.0f * ds_a2;
-        }
-        l1 += double(wp) * (lp * inv_c);
-        ssim += double(wp) * (sp * inv_c);
-      }
-      row_l1[i] = l1;
-      row_ssim[i] = ssim;
-    }
+  const SsimMaps maps{x, y, mu_x.data(), mu_y.data(), e_xx.data(), e_yy.data(), e_xy.data(), d_mu, d_xx, d_xy};
+  parallel_ranges(im.h, num_threads, kRows, [=, row_l1 = row_l1.data(), row_ssim = row_ssim.data()](int64_t lo, int64_t hi) {
+    std::vector<float> scratch(3 * size_t(im.w) * im.c);
+    for (int i = int(lo); i < int(hi); ++i) ssim_row(maps, w, im, lambda, inv_w, i, scratch.data(), row_l1[i], row_ssim[i]);
   });
   double l1 = 0.0, ssim = 0.0;
   for (int i = 0; i < im.h; ++i) l1 += row_l1[i], ssim += row_ssim[i];
+  const float inv_c = 1.0f / im.c;
   *loss_out = static_cast<float>((1.0 - lambda) * l1 * inv_w + lambda * (1.0 - ssim * inv_w));
   // back through the filter (self-adjoint); mu_x, e_xx, e_xy are free now
   blur(d_mu, mu_x.data(), e_yy.data(), im, taps, num_threads);
