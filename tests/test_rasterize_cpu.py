@@ -184,6 +184,30 @@ def test_forward_other_tile_sizes_and_float64_inputs():
     np.testing.assert_array_equal(last64, last)
 
 
+def test_tiles_of_over_64_pixel_blocks(monkeypatch):
+    """32-pixel tiles (128 or more pixel blocks, so each entry's block bitset
+    spans several words) with over 64 entries per tile (several groups of the
+    transposed block lists): the forward pass matches the oracle, and culled
+    and unculled kernels (spans, or every block) give the same bits."""
+    width, height, tile = 70, 45, 32
+    scene = random_scene(31, 500, width, height, 3, tile=tile)
+    offsets = scene[4]
+    assert np.diff(offsets).max() > 64
+    accum, alpha, last = run(scene, width, height, tile=tile)
+    ref_accum, ref_alpha, ref_last = oracle(*scene, width, height, tile)
+    np.testing.assert_allclose(accum, ref_accum, rtol=0, atol=FWD_ATOL)
+    np.testing.assert_allclose(alpha, ref_alpha, rtol=0, atol=FWD_ATOL)
+    np.testing.assert_array_equal(last, ref_last)
+    for isa in ("best", "baseline"):
+        _variant(monkeypatch, isa)
+        monkeypatch.setenv("MLX3D_RASTER_CULL", "0")
+        full = all_outputs(scene, width, height, tile)
+        monkeypatch.delenv("MLX3D_RASTER_CULL")
+        culled = all_outputs(scene, width, height, tile)
+        for name, a, b in zip(FORWARD_OUTPUTS + GRADIENTS, full, culled):
+            assert a.tobytes() == b.tobytes(), (isa, name)
+
+
 def test_early_stop_keeps_transmittance_above_threshold():
     width = height = 8
     n = 1000

@@ -454,11 +454,12 @@ RM_INLINE Reach reach_spans(const Splat& e, const TileBox& box, int& r0, int& r1
 }
 
 // Block lists. Each entry's reach is turned into a bitset of the pixel
-// blocks it holds a pixel of (one bit per block, 64 per word), and a block's
-// list is then read off the entries' bits. Both steps are free of
-// data-dependent branches: the spans' shapes vary from entry to entry, and
-// loops and branches shaped by them mispredicted (building the lists took
-// about 30% of each kernel's time; README, "The tile kernels, per core").
+// blocks it holds a pixel of (one bit per block, 64 per word); the bitsets of
+// each 64 entries are transposed into one word per block, and a block's list
+// is then read off its words. These steps are free of data-dependent
+// branches: the spans' shapes vary from entry to entry, and loops and
+// branches shaped by them mispredicted (building the lists took about 30% of
+// each kernel's time; README, "The tile kernels, per core").
 
 // Sets bits [b0, b1] of `bits` (`words` words) when `any` (else nothing; b0
 // and b1 are then ignored, so they may be anything).
@@ -494,17 +495,84 @@ RM_INLINE void set_rect_blocks(int r0, int r1, const int* lo, const int* hi, int
   }
 }
 
-// Writes to `list` the entries k0 + j, j in [0, n), whose bitset (`words`
-// words at bits + j * words) holds block b, in increasing order; returns how many.
-RM_INLINE int block_list(const uint64_t* bits, int words, int n, int b, int k0, int32_t* list) {
-  const uint64_t* col = bits + (b >> 6);
-  const int shift = b & 63;
+// Transposes the 64x64 bit matrix a (a[i] bit j becomes a[j] bit i): six rounds of block swaps.
+RM_INLINE void transpose_bits64(uint64_t* a) {
+  uint64_t m = 0x00000000FFFFFFFFull;
+  for (int j = 32; j != 0; j >>= 1, m ^= m << j) {
+    for (int k = 0; k < 64; k = ((k | j) + 1) & ~j) {
+      const uint64_t t = ((a[k] >> j) ^ a[k | j]) & m;
+      a[k] ^= t << j;
+      a[k | j] ^= t;
+    }
+  }
+}
+
+// The entries' bitsets by block: cols[b * G + g] bit i is bit b of entry 64 g + i's bitset (`words` words
+// per entry at bits), for blocks b < nb and the G = ceil(n / 64) groups of entries (0 past entry n).
+// Returns G. One 64x64 transpose per group and word, instead of one test per entry and block.
+RM_INLINE int block_columns(const uint64_t* bits, int words, int n, int nb, std::vector<uint64_t>& cols) {
+  const int groups = (n + 63) / 64;
+  if (cols.size() < static_cast<size_t>(nb) * groups) cols.resize(static_cast<size_t>(nb) * groups);
+  uint64_t a[64];
+  for (int g = 0; g < groups; ++g)
+    for (int w = 0; w < words; ++w) {
+      for (int i = 0; i < 64; ++i) {
+        const int k = 64 * g + i;
+        a[i] = k < n ? bits[static_cast<size_t>(k) * words + w] : 0;
+      }
+      transpose_bits64(a);
+      for (int b = 64 * w; b < std::min(nb, 64 * w + 64); ++b) cols[static_cast<size_t>(b) * groups + g] = a[b - 64 * w];
+    }
+  return groups;
+}
+
+// Positions of the set bits of each byte value, in increasing order (the rest zero), and their count.
+struct BytePositions {
+  uint8_t pos[256][8];
+  uint8_t count[256];
+};
+constexpr BytePositions make_byte_positions() {
+  BytePositions t{};
+  for (int v = 0; v < 256; ++v) {
+    int c = 0;
+    for (int bit = 0; bit < 8; ++bit)
+      if (v & (1 << bit)) t.pos[v][c++] = static_cast<uint8_t>(bit);
+    t.count[v] = static_cast<uint8_t>(c);
+  }
+  return t;
+}
+constexpr BytePositions kBytePositions = make_byte_positions();
+
+// Spare room `list` needs past the entries block_list writes.
+constexpr int kListSlack = 8;
+
+// Writes to `list` the entries k0 + j, j in [0, n), whose bits in `col` (one word per group of 64 entries,
+// as block_columns gives a block's) are set, in increasing order; returns how many. Eight candidates are
+// written per byte of bits and the count advanced by the byte's set bits (no branch on the bits), so
+// `list` needs kListSlack spare entries.
+RM_INLINE int block_list(const uint64_t* col, int n, int k0, int32_t* list) {
   int count = 0;
-  for (int j = 0; j < n; ++j) {
-    list[count] = k0 + j;
-    count += static_cast<int>((col[static_cast<size_t>(j) * words] >> shift) & 1);
+  for (int g = 0; 64 * g < n; ++g) {
+    const int rest = n - 64 * g;
+    const uint64_t m = rest >= 64 ? col[g] : col[g] & ((uint64_t(1) << rest) - 1);
+    for (int byte = 0; byte < 8; ++byte) {
+      const unsigned v = static_cast<unsigned>(m >> (8 * byte)) & 0xff;
+      const int base = k0 + 64 * g + 8 * byte;
+      for (int i = 0; i < 8; ++i) list[count + i] = base + kBytePositions.pos[v][i];
+      count += kBytePositions.count[v];
+    }
   }
   return count;
+}
+
+// Asks for the cache line at p ahead of a read (kWrite = false) or a write.
+template <bool kWrite>
+inline void prefetch(const void* p) {
+#if defined(__GNUC__) || defined(__clang__)
+  __builtin_prefetch(p, kWrite ? 1 : 0);
+#else
+  (void)p;
+#endif
 }
 
 // Per-thread scratch: the tile's Gaussians gathered contiguously, and lane buffers.
@@ -515,6 +583,7 @@ struct Scratch {
   std::vector<float> entry_lanes;               // backward: per-entry, per-field lane sums
   std::vector<int32_t> list;                    // one block's entry list
   std::vector<uint64_t> block_bits;             // per entry, the blocks its reach holds (see "block lists")
+  std::vector<uint64_t> block_cols;             // the same by block (block_columns)
   std::vector<int32_t> block_kmax;              // backward: entries each block walks
   std::vector<uint8_t> done;                    // forward: blocks whose pixels all stopped
   std::vector<int32_t> span_lo, span_hi;        // one entry's column spans, per tile row
@@ -534,6 +603,15 @@ struct Scratch {
     if (entries.size() < static_cast<size_t>(n)) entries.resize(n);
     if (C > kMaxFixedChannels && feat.size() < static_cast<size_t>(n) * C) feat.resize(static_cast<size_t>(n) * C);
     if (span_lo.size() < static_cast<size_t>(rows) + 4) span_lo.resize(rows + 4), span_hi.resize(rows + 4);
+  }
+
+  // Asks for the Splats of entries [k0, k1) of the tile whose range starts at lo (random places in
+  // in.splats), so that their misses overlap other work before gather() reads them.
+  void prefetch_splats(const Inputs& in, const Geometry& geo, int64_t lo, int k0, int k1) const {
+    for (int j = k0; j < k1; ++j) {
+      const int64_t g = in.ids[lo + j];
+      if (g >= 0 && g < geo.num_gaussians) prefetch<false>(&in.splats[g]);
+    }
   }
 
   // Entries [k0, k1) of the tile whose range starts at lo; reserve() first.
@@ -816,7 +894,7 @@ RM_INLINE void forward_tile_impl(const Inputs& in, const Geometry& geo, int t, S
   s.reserve(n, C, box.h);
   s.done.assign(nb, 0);
   const int words = (nb + 63) / 64;
-  if (s.list.size() < static_cast<size_t>(kForwardChunk)) s.list.resize(kForwardChunk);
+  if (s.list.size() < static_cast<size_t>(kForwardChunk) + kListSlack) s.list.resize(kForwardChunk + kListSlack);
   int32_t* list = s.list.data();
   uint8_t* done = s.done.data();
   int* span_lo = s.span_lo.data();
@@ -825,6 +903,7 @@ RM_INLINE void forward_tile_impl(const Inputs& in, const Geometry& geo, int t, S
   for (int k0 = 0; k0 < n && alive > 0; k0 += kForwardChunk) {
     const int k1 = std::min(n, k0 + kForwardChunk);
     s.gather(in, geo, lo, k0, k1);
+    s.prefetch_splats(in, geo, lo, k1, std::min(n, k1 + kForwardChunk));  // the next chunk's, during this one
     s.block_bits.assign(static_cast<size_t>(k1 - k0) * words, 0);
     for (int k = k0; k < k1; ++k) {
       int r0, r1;
@@ -833,9 +912,10 @@ RM_INLINE void forward_tile_impl(const Inputs& in, const Geometry& geo, int t, S
       if (reach == Reach::kTile) set_block_range(bits, words, 0, nb - 1, true);
       if (reach == Reach::kSpans) set_rect_blocks<kW, kH>(r0, r1, span_lo, span_hi, bw, words, bits);
     }
+    const int groups = block_columns(s.block_bits.data(), words, k1 - k0, nb, s.block_cols);  // 1 while kForwardChunk <= 64
     for (int b = 0; b < nb; ++b) {
       if (done[b]) continue;
-      const int count = block_list(s.block_bits.data(), words, k1 - k0, b, k0, list);
+      const int count = block_list(&s.block_cols[static_cast<size_t>(b) * groups], k1 - k0, k0, list);
       if (count == 0) continue;
       LF* sb = st + static_cast<size_t>(b) * S;
       if (!composite_block<LF, LI, CC, kSurface>(s, sb, C, list, count)) {
@@ -986,7 +1066,8 @@ RM_INLINE void backward_tile_impl(const Inputs& in, const Geometry& geo, int t, 
     if (reach == Reach::kTile) set_block_range(bits, words, 0, nb - 1, true);
     if (reach == Reach::kSpans) set_run_blocks<kLanes>(r0, r1, span_lo, span_hi, box.w, words, bits);
   }
-  if (s.list.size() < static_cast<size_t>(kmax)) s.list.resize(kmax);
+  const int groups = block_columns(s.block_bits.data(), words, kmax, nb, s.block_cols);
+  if (s.list.size() < static_cast<size_t>(kmax) + kListSlack) s.list.resize(kmax + kListSlack);
   int32_t* list = s.list.data();
 
   LF* gacc = Scratch::lanes<LF>(s.lane, C);  // dL/daccum of the lanes' pixels, per channel
@@ -996,7 +1077,7 @@ RM_INLINE void backward_tile_impl(const Inputs& in, const Geometry& geo, int t, 
 
   for (int blk = 0; blk < nb; ++blk) {
     // The entries before the block's last contributor that reach it, in order.
-    const int count = block_list(s.block_bits.data(), words, s.block_kmax[blk], blk, 0, list);
+    const int count = block_list(&s.block_cols[static_cast<size_t>(blk) * groups], s.block_kmax[blk], 0, list);
     if (count == 0) continue;  // no entry reaches it: it adds nothing
     LF px, py;
     LI valid;
@@ -1212,14 +1293,6 @@ struct GradOut {
   float* opacities;
 };
 
-inline void prefetch_for_write(const float* p) {
-#if defined(__GNUC__) || defined(__clang__)
-  __builtin_prefetch(p, 1);
-#else
-  (void)p;
-#endif
-}
-
 // Per-Gaussian ranges of at least this many Gaussians per thread for the output passes.
 constexpr int64_t kMinGaussiansPerThread = 4096;
 
@@ -1231,7 +1304,7 @@ void add_slots(const Inputs& in, int64_t N, int K, int64_t lo0, int64_t hi1, con
   for (int64_t e = lo0; e < hi1; ++e) {
     if (e + kAhead < hi1) {
       const int64_t ga = in.ids[e + kAhead];
-      if (ga >= 0 && ga < N) prefetch_for_write(acc + ga * K);
+      if (ga >= 0 && ga < N) prefetch<true>(acc + ga * K);
     }
     const int64_t g = in.ids[e];
     if (g < 0 || g >= N) continue;
