@@ -383,21 +383,34 @@ void row_spans_scalar(double cx, double cy, double slope, double p, double rc, d
 }
 
 #if defined(MLX3D_RASTER_AVX2)
-// The same, four rows at a time (the same double arithmetic); may write up to
-// 3 entries past r1.
+// The spans of rows r .. r + 3 (as row_spans_scalar, the same double arithmetic), unclamped.
+struct Spans4 {
+  __m256d cx, cy, slope, p, rc, margin;
+};
+__attribute__((target("avx2"))) inline void spans4(const Spans4& v, int r, __m128i& lo, __m128i& hi) {
+  const __m256d step = _mm256_set_pd(3.0, 2.0, 1.0, 0.0);
+  const __m256d dy = _mm256_sub_pd(v.cy, _mm256_add_pd(_mm256_set1_pd(static_cast<double>(r)), step));
+  const __m256d centre = _mm256_add_pd(v.cx, _mm256_mul_pd(v.slope, dy));
+  const __m256d arg = _mm256_max_pd(_mm256_sub_pd(v.p, _mm256_mul_pd(_mm256_mul_pd(v.rc, dy), dy)), _mm256_setzero_pd());
+  const __m256d half = _mm256_add_pd(_mm256_sqrt_pd(arg), v.margin);
+  lo = _mm256_cvttpd_epi32(_mm256_ceil_pd(_mm256_sub_pd(centre, half)));
+  hi = _mm256_cvttpd_epi32(_mm256_floor_pd(_mm256_add_pd(centre, half)));
+}
+
+__attribute__((target("avx2"))) inline Spans4 spans4_setup(double cx, double cy, double slope, double p, double rc,
+                                                           double margin) {
+  return {_mm256_set1_pd(cx), _mm256_set1_pd(cy), _mm256_set1_pd(slope), _mm256_set1_pd(p), _mm256_set1_pd(rc),
+          _mm256_set1_pd(margin)};
+}
+
+// row_spans_scalar four rows at a time; may write up to 3 entries past r1.
 __attribute__((target("avx2"))) void row_spans_avx2(double cx, double cy, double slope, double p, double rc,
                                                     double margin, int r0, int r1, int c0, int c1, int* lo, int* hi) {
-  const __m256d vcx = _mm256_set1_pd(cx), vcy = _mm256_set1_pd(cy), vslope = _mm256_set1_pd(slope);
-  const __m256d vp = _mm256_set1_pd(p), vrc = _mm256_set1_pd(rc), vmargin = _mm256_set1_pd(margin);
-  const __m256d step = _mm256_set_pd(3.0, 2.0, 1.0, 0.0), zero = _mm256_setzero_pd();
+  const Spans4 v = spans4_setup(cx, cy, slope, p, rc, margin);
   const __m128i vc0 = _mm_set1_epi32(c0), vc1 = _mm_set1_epi32(c1);
   for (int r = r0; r <= r1; r += 4) {
-    const __m256d dy = _mm256_sub_pd(vcy, _mm256_add_pd(_mm256_set1_pd(static_cast<double>(r)), step));
-    const __m256d centre = _mm256_add_pd(vcx, _mm256_mul_pd(vslope, dy));
-    const __m256d arg = _mm256_max_pd(_mm256_sub_pd(vp, _mm256_mul_pd(_mm256_mul_pd(vrc, dy), dy)), zero);
-    const __m256d half = _mm256_add_pd(_mm256_sqrt_pd(arg), vmargin);
-    const __m128i l = _mm256_cvttpd_epi32(_mm256_ceil_pd(_mm256_sub_pd(centre, half)));
-    const __m128i h = _mm256_cvttpd_epi32(_mm256_floor_pd(_mm256_add_pd(centre, half)));
+    __m128i l, h;
+    spans4(v, r, l, h);
     _mm_storeu_si128(reinterpret_cast<__m128i*>(lo + r), _mm_max_epi32(l, vc0));
     _mm_storeu_si128(reinterpret_cast<__m128i*>(hi + r), _mm_min_epi32(h, vc1));
   }
@@ -411,46 +424,6 @@ RM_INLINE bool in_span_ellipse(const Splat& e, double cx, double cy, int q, int 
   const double dy = cy - row;
   const double u = q - (cx + static_cast<double>(e.slope) * dy);
   return u * u <= static_cast<double>(e.p) - static_cast<double>(e.r) * dy * dy;
-}
-
-// What reach_spans found: no pixel of the tile, the spans it wrote, or every
-// pixel of the tile (spans not written).
-enum class Reach { kNone, kSpans, kTile };
-
-// The reach of Splat e in the tile: rows [r0, r1] and, for each, tile-local
-// columns [lo[r], hi[r]] (inclusive; lo > hi: none). lo and hi need box.h + 3
-// entries. When the reach box holds the whole tile and the tile's four corner
-// pixels lie in the spans' ellipse, which is convex, every row's span is the
-// full row: that is reported as Reach::kTile without computing the spans.
-template <bool kAvx2>
-RM_INLINE Reach reach_spans(const Splat& e, const TileBox& box, int& r0, int& r1, int* lo, int* hi) {
-  r0 = 0;
-  r1 = box.h - 1;
-  int c0 = 0, c1 = box.w - 1;
-  if (e.hx < 0.0f || e.hy < 0.0f) return Reach::kNone;
-  const bool bounded = e.hx <= kReachMaxHalf && e.hy <= kReachMaxHalf && std::fabs(e.x) <= kReachMaxCoord &&
-                       std::fabs(e.y) <= kReachMaxCoord;  // false for NaN too
-  if (!bounded) return Reach::kTile;
-  // tile-local pixel column q has its centre at x0 + q + 0.5
-  const double cx = static_cast<double>(e.x) - 0.5 - box.x0, cy = static_cast<double>(e.y) - 0.5 - box.y0;
-  c0 = std::max(c0, static_cast<int>(std::ceil(cx - e.hx)));
-  c1 = std::min(c1, static_cast<int>(std::floor(cx + e.hx)));
-  r0 = std::max(r0, static_cast<int>(std::ceil(cy - e.hy)));
-  r1 = std::min(r1, static_cast<int>(std::floor(cy + e.hy)));
-  if (c0 > c1 || r0 > r1) return Reach::kNone;
-  const int w1 = box.w - 1, h1 = box.h - 1;
-  if (c0 == 0 && r0 == 0 && c1 == w1 && r1 == h1 && in_span_ellipse(e, cx, cy, 0, 0) &&
-      in_span_ellipse(e, cx, cy, w1, 0) && in_span_ellipse(e, cx, cy, 0, h1) && in_span_ellipse(e, cx, cy, w1, h1))
-    return Reach::kTile;
-  const double margin = 1e-4 * e.hx + 0.01;
-#if defined(MLX3D_RASTER_AVX2)
-  if constexpr (kAvx2) {
-    row_spans_avx2(cx, cy, e.slope, e.p, e.r, margin, r0, r1, c0, c1, lo, hi);
-    return Reach::kSpans;
-  }
-#endif
-  row_spans_scalar(cx, cy, e.slope, e.p, e.r, margin, r0, r1, c0, c1, lo, hi);
-  return Reach::kSpans;
 }
 
 // Block lists. Each entry's reach is turned into a bitset of the pixel
@@ -477,22 +450,114 @@ RM_INLINE void set_block_range(uint64_t* bits, int words, int b0, int b1, bool a
   }
 }
 
-// The blocks holding a pixel of the spans (rows [r0, r1], columns [lo[r],
-// hi[r]] of a tile of width w): backward blocks are kLanes consecutive pixels
-// in row-major order (a block may span two rows).
+// Pixel blocks of a tile: pixel (row r, column q) is in block ((r * row_mul + q) >> q_shift) + (r >> row_shift)
+// * row_blocks.
+struct BlockMap {
+  int row_mul, q_shift, row_shift, row_blocks;
+};
+
+// Backward blocks: kLanes consecutive pixels in row-major order of a tile of width w (a block may span two rows).
 template <int kLanes>
-RM_INLINE void set_run_blocks(int r0, int r1, const int* lo, const int* hi, int w, int words, uint64_t* bits) {
-  for (int r = r0; r <= r1; ++r)
-    set_block_range(bits, words, (r * w + lo[r]) / kLanes, (r * w + hi[r]) / kLanes, lo[r] <= hi[r]);
+constexpr BlockMap run_blocks(int w) {
+  static_assert((kLanes & (kLanes - 1)) == 0, "lanes: a power of two");
+  int shift = 0;
+  while ((1 << shift) < kLanes) ++shift;
+  return {w, shift, 0, 0};
 }
 
-// The same for forward blocks, kW x kH rectangles numbered row by row, bw per row.
+// Forward blocks: kW x kH rectangles (powers of two) numbered row by row, bw per row.
 template <int kW, int kH>
-RM_INLINE void set_rect_blocks(int r0, int r1, const int* lo, const int* hi, int bw, int words, uint64_t* bits) {
+constexpr BlockMap rect_blocks(int bw) {
+  static_assert((kW & (kW - 1)) == 0 && (kH & (kH - 1)) == 0, "block sides: powers of two");
+  int ws = 0, hs = 0;
+  while ((1 << ws) < kW) ++ws;
+  while ((1 << hs) < kH) ++hs;
+  return {0, ws, hs, bw};
+}
+
+// Sets the bits of the blocks holding a pixel of the spans (rows [r0, r1], columns [lo[r], hi[r]]; lo > hi:
+// none): each row's pixels lie in one run of block numbers.
+RM_INLINE void set_span_blocks(int r0, int r1, const int* lo, const int* hi, const BlockMap& map, int words,
+                               uint64_t* bits) {
   for (int r = r0; r <= r1; ++r) {
-    const int row = (r / kH) * bw;
-    set_block_range(bits, words, row + lo[r] / kW, row + hi[r] / kW, lo[r] <= hi[r]);
+    const int row = (r >> map.row_shift) * map.row_blocks;
+    set_block_range(bits, words, row + ((r * map.row_mul + lo[r]) >> map.q_shift),
+                    row + ((r * map.row_mul + hi[r]) >> map.q_shift), lo[r] <= hi[r]);
   }
+}
+
+#if defined(MLX3D_RASTER_AVX2)
+// The same for tiles of at most 64 blocks (one word), with the spans computed here (as row_spans_avx2),
+// four rows at a time in 64-bit lanes, with no branch on the spans: each row's run of blocks is
+// (2 << b1) - (1 << b0), and rows past r1 or with no pixel add nothing.
+__attribute__((target("avx2"))) inline uint64_t span_blocks_word(const Spans4& v, int r0, int r1, int c0, int c1,
+                                                                 const BlockMap& map) {
+  const __m128i vc0 = _mm_set1_epi32(c0), vc1 = _mm_set1_epi32(c1);
+  const __m256i row_mul = _mm256_set1_epi64x(map.row_mul), row_blocks = _mm256_set1_epi64x(map.row_blocks);
+  const __m256i q_shift = _mm256_set1_epi64x(map.q_shift), row_shift = _mm256_set1_epi64x(map.row_shift);
+  const __m256i one = _mm256_set1_epi64x(1), two = _mm256_set1_epi64x(2), last = _mm256_set1_epi64x(r1);
+  __m256i acc = _mm256_setzero_si256();
+  for (int r = r0; r <= r1; r += 4) {
+    __m128i l, h;
+    spans4(v, r, l, h);
+    const __m256i lo = _mm256_cvtepi32_epi64(_mm_max_epi32(l, vc0)), hi = _mm256_cvtepi32_epi64(_mm_min_epi32(h, vc1));
+    const __m256i rows = _mm256_add_epi64(_mm256_set1_epi64x(r), _mm256_set_epi64x(3, 2, 1, 0));
+    const __m256i base = _mm256_mul_epu32(rows, row_mul);  // small non-negative values: 32-bit products
+    const __m256i row = _mm256_mul_epu32(_mm256_srlv_epi64(rows, row_shift), row_blocks);
+    const __m256i b0 = _mm256_add_epi64(row, _mm256_srlv_epi64(_mm256_add_epi64(base, lo), q_shift));
+    const __m256i b1 = _mm256_add_epi64(row, _mm256_srlv_epi64(_mm256_add_epi64(base, hi), q_shift));
+    const __m256i run = _mm256_sub_epi64(_mm256_sllv_epi64(two, b1), _mm256_sllv_epi64(one, b0));
+    const __m256i none = _mm256_or_si256(_mm256_cmpgt_epi64(rows, last), _mm256_cmpgt_epi64(lo, hi));
+    acc = _mm256_or_si256(acc, _mm256_andnot_si256(none, run));
+  }
+  const __m128i pair = _mm_or_si128(_mm256_castsi256_si128(acc), _mm256_extracti128_si256(acc, 1));
+  return static_cast<uint64_t>(_mm_cvtsi128_si64(pair) | _mm_extract_epi64(pair, 1));
+}
+#endif
+
+// The blocks (`map`; nb blocks, `words` words of bits) holding a pixel of Splat e's reach in the tile, ORed
+// into bits. The reach's pixels are rows [r0, r1] and, in each, tile-local columns [lo[r], hi[r]] (its
+// spans, see "sub-tile culling"). When the reach box holds the whole tile and the tile's four corner pixels
+// lie in the spans' ellipse, which is convex, every block is held, without computing the spans.
+// lo and hi: scratch of box.h + 3 entries.
+template <bool kAvx2>
+RM_INLINE void reach_blocks(const Splat& e, const TileBox& box, const BlockMap& map, int nb, int words, int* lo, int* hi,
+                            uint64_t* bits) {
+  int r0 = 0, r1 = box.h - 1, c0 = 0, c1 = box.w - 1;
+  if (e.hx < 0.0f || e.hy < 0.0f) return;
+  const bool bounded = e.hx <= kReachMaxHalf && e.hy <= kReachMaxHalf && std::fabs(e.x) <= kReachMaxCoord &&
+                       std::fabs(e.y) <= kReachMaxCoord;  // false for NaN too
+  if (!bounded) {
+    set_block_range(bits, words, 0, nb - 1, true);
+    return;
+  }
+  // tile-local pixel column q has its centre at x0 + q + 0.5
+  const double cx = static_cast<double>(e.x) - 0.5 - box.x0, cy = static_cast<double>(e.y) - 0.5 - box.y0;
+  c0 = std::max(c0, static_cast<int>(std::ceil(cx - e.hx)));
+  c1 = std::min(c1, static_cast<int>(std::floor(cx + e.hx)));
+  r0 = std::max(r0, static_cast<int>(std::ceil(cy - e.hy)));
+  r1 = std::min(r1, static_cast<int>(std::floor(cy + e.hy)));
+  if (c0 > c1 || r0 > r1) return;
+  const int w1 = box.w - 1, h1 = box.h - 1;
+  if (c0 == 0 && r0 == 0 && c1 == w1 && r1 == h1 && in_span_ellipse(e, cx, cy, 0, 0) &&
+      in_span_ellipse(e, cx, cy, w1, 0) && in_span_ellipse(e, cx, cy, 0, h1) && in_span_ellipse(e, cx, cy, w1, h1)) {
+    set_block_range(bits, words, 0, nb - 1, true);
+    return;
+  }
+  const double margin = 1e-4 * e.hx + 0.01;
+#if defined(MLX3D_RASTER_AVX2)
+  if constexpr (kAvx2) {
+    if (words == 1) {
+      bits[0] |= span_blocks_word(spans4_setup(cx, cy, e.slope, e.p, e.r, margin), r0, r1, c0, c1, map);
+      return;
+    }
+    row_spans_avx2(cx, cy, e.slope, e.p, e.r, margin, r0, r1, c0, c1, lo, hi);
+    set_span_blocks(r0, r1, lo, hi, map, words, bits);
+    return;
+  }
+#endif
+  row_spans_scalar(cx, cy, e.slope, e.p, e.r, margin, r0, r1, c0, c1, lo, hi);
+  set_span_blocks(r0, r1, lo, hi, map, words, bits);
 }
 
 // Transposes the 64x64 bit matrix a (a[i] bit j becomes a[j] bit i): six rounds of block swaps.
@@ -894,6 +959,7 @@ RM_INLINE void forward_tile_impl(const Inputs& in, const Geometry& geo, int t, S
   s.reserve(n, C, box.h);
   s.done.assign(nb, 0);
   const int words = (nb + 63) / 64;
+  const BlockMap map = rect_blocks<kW, kH>(bw);
   if (s.list.size() < static_cast<size_t>(kForwardChunk) + kListSlack) s.list.resize(kForwardChunk + kListSlack);
   int32_t* list = s.list.data();
   uint8_t* done = s.done.data();
@@ -905,13 +971,9 @@ RM_INLINE void forward_tile_impl(const Inputs& in, const Geometry& geo, int t, S
     s.gather(in, geo, lo, k0, k1);
     s.prefetch_splats(in, geo, lo, k1, std::min(n, k1 + kForwardChunk));  // the next chunk's, during this one
     s.block_bits.assign(static_cast<size_t>(k1 - k0) * words, 0);
-    for (int k = k0; k < k1; ++k) {
-      int r0, r1;
-      uint64_t* bits = &s.block_bits[static_cast<size_t>(k - k0) * words];
-      const Reach reach = reach_spans<kLanes == 8>(s.entries[k], box, r0, r1, span_lo, span_hi);
-      if (reach == Reach::kTile) set_block_range(bits, words, 0, nb - 1, true);
-      if (reach == Reach::kSpans) set_rect_blocks<kW, kH>(r0, r1, span_lo, span_hi, bw, words, bits);
-    }
+    for (int k = k0; k < k1; ++k)
+      reach_blocks<kLanes == 8>(s.entries[k], box, map, nb, words, span_lo, span_hi,
+                                &s.block_bits[static_cast<size_t>(k - k0) * words]);
     const int groups = block_columns(s.block_bits.data(), words, k1 - k0, nb, s.block_cols);  // 1 while kForwardChunk <= 64
     for (int b = 0; b < nb; ++b) {
       if (done[b]) continue;
@@ -1059,13 +1121,10 @@ RM_INLINE void backward_tile_impl(const Inputs& in, const Geometry& geo, int t, 
   int* span_hi = s.span_hi.data();
   const int words = (nb + 63) / 64;
   s.block_bits.assign(static_cast<size_t>(kmax) * words, 0);
-  for (int k = 0; k < kmax; ++k) {
-    int r0, r1;
-    uint64_t* bits = &s.block_bits[static_cast<size_t>(k) * words];
-    const Reach reach = reach_spans<kLanes == 8>(s.entries[k], box, r0, r1, span_lo, span_hi);
-    if (reach == Reach::kTile) set_block_range(bits, words, 0, nb - 1, true);
-    if (reach == Reach::kSpans) set_run_blocks<kLanes>(r0, r1, span_lo, span_hi, box.w, words, bits);
-  }
+  const BlockMap map = run_blocks<kLanes>(box.w);
+  for (int k = 0; k < kmax; ++k)
+    reach_blocks<kLanes == 8>(s.entries[k], box, map, nb, words, span_lo, span_hi,
+                              &s.block_bits[static_cast<size_t>(k) * words]);
   const int groups = block_columns(s.block_bits.data(), words, kmax, nb, s.block_cols);
   if (s.list.size() < static_cast<size_t>(kmax) + kListSlack) s.list.resize(kmax + kListSlack);
   int32_t* list = s.list.data();
