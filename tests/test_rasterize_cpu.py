@@ -635,11 +635,12 @@ def test_frozen_outputs_are_bit_identical(monkeypatch, cull):
     names = sorted(k[: -len("/means")] for k in data.files if k.endswith("/means"))
     assert len(names) >= 7
     monkeypatch.setenv("MLX3D_RASTER_CULL", cull)
-    checked_grads = 0
+    checked_grads, frozen_widths = 0, 0
     for isa in ("best", "baseline"):
         lanes = _variant(monkeypatch, isa)
         # gradients depend on the lane width (lane sums), forward outputs do not
         grads_from = {int(data["best_lanes"]): "best", int(data["baseline_lanes"]): "baseline"}.get(lanes)
+        frozen_widths += grads_from is not None
         for name in names:
             case = {k: data[f"{name}/{k}"] for k in FROZEN_INPUTS}
             for threads in (1, 3):
@@ -651,7 +652,9 @@ def test_frozen_outputs_are_bit_identical(monkeypatch, cull):
                 for k in GRADIENTS:
                     assert got[k].tobytes() == data[f"{name}/{grads_from}/{k}"].tobytes(), (name, isa, threads, k)
                     checked_grads += 1
-    assert checked_grads > 0
+    # a build whose lanes match neither frozen width (one lane: compilers without vector extensions) has
+    # its gradients checked by the finite-difference tests only
+    assert checked_grads > 0 or frozen_widths == 0
 
 
 def adversarial_conics(rng, n, sigma=(0.05, 60.0), aniso=1e5):
