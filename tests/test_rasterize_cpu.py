@@ -595,6 +595,66 @@ def test_num_threads_setting(monkeypatch):
         set_num_threads(1.5)
 
 
+def test_worker_pool_after_fork_and_with_concurrent_callers():
+    """The kernels' threads come from a pool kept between calls. A forked child, where the parent's
+    workers do not exist, gets its own pool: tile binning (a native call that needs no MLX evaluation,
+    which MLX itself does not support after a fork) runs there on 2 threads. Callers on several threads at
+    once (the pool runs one job; the others start their own threads) get the same bits as one caller."""
+    import os
+    import signal
+    import threading
+    import time
+
+    from mlx3d import native
+
+    rng = np.random.default_rng(5)
+    n = 20_000
+    means = (rng.random((n, 2)) * [640, 480]).astype(np.float32)
+    radii = rng.uniform(0.5, 40, n).astype(np.float32)
+    depths = rng.uniform(0.1, 10, n).astype(np.float32)
+    core = native.core()
+
+    def bins():  # 2 threads; bin_tiles releases the GIL
+        offsets, ids = core.bin_tiles(means, radii, depths, 640, 480, 16, 2)
+        return np.array(offsets).tobytes() + np.array(ids).tobytes()
+
+    alone = bins()  # the pool's worker exists from here on
+    pid = os.fork()
+    if pid == 0:  # the child: exit status 0 when it bins the same
+        signal.alarm(30)
+        try:
+            os._exit(0 if bins() == alone else 1)
+        except BaseException:
+            os._exit(2)
+    deadline = time.monotonic() + 60
+    while True:
+        done, status = os.waitpid(pid, os.WNOHANG)
+        if done:
+            break
+        if time.monotonic() > deadline:
+            os.kill(pid, signal.SIGKILL)
+            os.waitpid(pid, 0)
+            pytest.fail("the forked child hung binning on 2 threads")
+        time.sleep(0.05)
+    assert os.WIFEXITED(status) and os.WEXITSTATUS(status) == 0, f"the forked child's status: {status}"
+
+    results, errors = [], []
+
+    def caller():
+        try:
+            for _ in range(10):
+                results.append(bins())
+        except BaseException as e:  # reported below
+            errors.append(e)
+
+    threads = [threading.Thread(target=caller) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(120)
+    assert not errors and len(results) == 40 and all(r == alone for r in results)
+
+
 # --------------------------------------------------------------------------- #
 # sub-tile culling (the kernels skip pixel blocks outside each Gaussian's
 # reach): results are bitwise those of evaluating every (pixel, Gaussian) pair

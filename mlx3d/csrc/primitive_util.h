@@ -3,15 +3,27 @@
 
 #include <algorithm>
 #include <atomic>
+#include <chrono>
+#include <condition_variable>
 #include <cstdlib>
 #include <cstring>
+#include <exception>
+#include <functional>
 #include <memory>
+#include <mutex>
 #include <new>
 #include <sstream>
 #include <stdexcept>
 #include <string>
 #include <thread>
 #include <vector>
+
+#if defined(__unix__) || defined(__APPLE__)
+#include <pthread.h>
+#endif
+#if defined(__x86_64__) || defined(__i386__)
+#include <immintrin.h>
+#endif
 
 #if defined(__linux__)
 #include <sys/mman.h>
@@ -74,19 +86,134 @@ inline int resolve_threads(int num_threads, int work_items) {
   return std::max(1, std::min(threads, work_items));
 }
 
+// A spin-wait hint to the core (lets the other hardware thread run).
+inline void cpu_relax() {
+#if defined(__x86_64__) || defined(__i386__)
+  _mm_pause();
+#elif defined(__aarch64__)
+  asm volatile("yield");
+#endif
+}
+
+// Worker threads kept for the whole process, which run the kernels' threaded passes. Starting a
+// std::thread per pass cost its clone on the calling thread and left the caller working alone until the
+// new thread ran: a training step runs about 64 passes. A worker waits for the next job spinning for a
+// while (50 us), then sleeps on a condition variable. One job at a time: a concurrent or nested
+// call gets false from run() and starts its own threads. A forked child gets a fresh pool (the parent's
+// workers do not exist there).
+class WorkerPool {
+ public:
+  static WorkerPool& instance() {
+    static std::once_flag once;
+    std::call_once(once, [] {
+      current() = new WorkerPool();  // never deleted: parked workers end with the process
+#if defined(__unix__) || defined(__APPLE__)
+      pthread_atfork(nullptr, nullptr, [] { current() = new WorkerPool(); });
+#endif
+    });
+    return *current();
+  }
+
+  // Runs task(i) for i in [0, n): 0 on the calling thread, the others on workers; returns when all are
+  // done (an exception from task(0) is rethrown after them). False, with nothing run, while the pool is
+  // running another job.
+  bool run(int n, const std::function<void(int)>& task) {
+    std::unique_lock<std::mutex> busy(busy_, std::try_to_lock);
+    if (!busy.owns_lock()) return false;
+    while (static_cast<int>(workers_.size()) < n - 1) {
+      const int index = static_cast<int>(workers_.size()) + 1;
+      workers_.emplace_back([this, index] { work(index); });
+      workers_.back().detach();
+    }
+    task_.store(&task, std::memory_order_relaxed);
+    remaining_.store(n - 1, std::memory_order_relaxed);
+    {
+      std::lock_guard<std::mutex> lock(wake_mutex_);
+      const uint64_t next = (job_.load(std::memory_order_relaxed) >> 32) + 1;
+      job_.store(next << 32 | static_cast<uint32_t>(n), std::memory_order_release);
+    }
+    wake_.notify_all();
+    std::exception_ptr error;
+    try {
+      task(0);
+    } catch (...) {
+      error = std::current_exception();
+    }
+    for (Spin spin; remaining_.load(std::memory_order_acquire) > 0;)
+      if (!spin.more()) std::this_thread::yield();
+    if (error) std::rethrow_exception(error);
+    return true;
+  }
+
+ private:
+  // A spin-wait of at most kSpin: more() pauses the core briefly while it lasts.
+  struct Spin {
+    static constexpr std::chrono::microseconds kSpin{50};
+    std::chrono::steady_clock::time_point end = std::chrono::steady_clock::now() + kSpin;
+    int count = 0;
+    bool more() {
+      cpu_relax();
+      return (++count & 63) != 0 || std::chrono::steady_clock::now() < end;
+    }
+  };
+
+  static WorkerPool*& current() {
+    static WorkerPool* pool = nullptr;
+    return pool;
+  }
+
+  // Worker `index` (>= 1): runs its task of each job with more than `index` threads. A job is its number
+  // and thread count in one word (job_), so a worker never pairs one job's number with another's count.
+  void work(int index) {
+    uint64_t seen = 0;  // the last job number handled
+    for (;;) {
+      uint64_t job = job_.load(std::memory_order_acquire);
+      for (Spin spin; job >> 32 == seen && spin.more();) job = job_.load(std::memory_order_acquire);
+      if (job >> 32 == seen) {
+        std::unique_lock<std::mutex> lock(wake_mutex_);
+        wake_.wait(lock, [&] { return job_.load(std::memory_order_acquire) >> 32 != seen; });
+        job = job_.load(std::memory_order_acquire);
+      }
+      seen = job >> 32;
+      if (index < static_cast<int>(job & 0xffffffffu)) {
+        (*task_.load(std::memory_order_relaxed))(index);
+        remaining_.fetch_sub(1, std::memory_order_release);
+      }
+    }
+  }
+
+  std::mutex busy_;  // held by run() for a whole job
+  std::mutex wake_mutex_;
+  std::condition_variable wake_;
+  std::atomic<uint64_t> job_{0};  // job number << 32 | its thread count
+  std::atomic<int> remaining_{0};  // workers' tasks of the current job not yet done
+  std::atomic<const std::function<void(int)>*> task_{nullptr};
+  std::vector<std::thread> workers_;
+};
+
+// Runs task(i) for i in [0, n) at once, one thread each (the caller runs i = 0): on the worker pool, or
+// on threads started for this call while the pool is busy.
+inline void run_threads(int n, const std::function<void(int)>& task) {
+  if (n <= 1) {
+    task(0);
+    return;
+  }
+  if (WorkerPool::instance().run(n, task)) return;
+  std::vector<std::thread> pool;
+  pool.reserve(n - 1);
+  for (int i = 1; i < n; ++i) pool.emplace_back(task, i);
+  task(0);
+  for (auto& th : pool) th.join();
+}
+
 // Runs fn(item, thread id) for items [t0, t1) on `threads` threads, taking items from a shared counter.
 template <typename Fn>
 void parallel_items(int t0, int t1, int threads, Fn&& fn) {
   std::atomic<int> next(t0);
-  auto worker = [&](int id) {
-    for (int t = next.fetch_add(1); t < t1; t = next.fetch_add(1)) fn(t, id);
-  };
   threads = std::max(1, std::min(threads, t1 - t0));
-  std::vector<std::thread> pool;
-  pool.reserve(threads - 1);
-  for (int i = 1; i < threads; ++i) pool.emplace_back(worker, i);
-  worker(0);
-  for (auto& th : pool) th.join();
+  run_threads(threads, [&](int id) {
+    for (int t = next.fetch_add(1); t < t1; t = next.fetch_add(1)) fn(t, id);
+  });
 }
 
 // How parallel_ranges cuts [0, n): `threads` contiguous ranges of `step` items (the last ones shorter,
@@ -110,14 +237,11 @@ inline RangeSplit split_ranges(int64_t n, int num_threads, int64_t min_per_threa
 template <typename Fn>
 void parallel_ranges(int64_t n, int num_threads, int64_t min_per_thread, const Fn& fn) {
   const RangeSplit split = split_ranges(n, num_threads, min_per_thread);
-  const int threads = split.threads;
   const int64_t step = split.step;
-  std::vector<std::thread> pool;
-  pool.reserve(threads - 1);
-  for (int t = 1; t < threads; ++t) pool.emplace_back(fn, std::min(n, t * step), std::min(n, (t + 1) * step));
-  Fn own = fn;
-  own(int64_t(0), std::min(n, step));
-  for (auto& th : pool) th.join();
+  run_threads(split.threads, [&](int t) {
+    Fn own = fn;
+    own(std::min(n, t * step), std::min(n, (t + 1) * step));
+  });
 }
 
 // An uninitialised array of n T, on 2 MB pages where the OS offers them (Linux transparent huge
