@@ -14,10 +14,10 @@
 #include <cmath>
 #include <cstdint>
 #include <limits>
-#include <thread>
 #include <vector>
 
 #include "bindings.h"
+#include "primitive_util.h"
 
 namespace nb = nanobind;
 using namespace nb::literals;
@@ -130,17 +130,10 @@ void affine_covariances(const Lin& linear, const Quats& quats, const Scales& log
   const float* s = log_scales.data();
   float* qo = quats_out.data();
   float* so = log_scales_out.data();
-  int threads = num_threads > 0 ? num_threads : static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
-  threads = static_cast<int>(std::max<int64_t>(1, std::min<int64_t>(threads, n / 4096 + 1)));
   nb::gil_scoped_release release;
-  auto work = [&](int64_t lo, int64_t hi) {
+  parallel_ranges(n, num_threads, 4096, [=](int64_t lo, int64_t hi) {
     for (int64_t i = lo; i < hi; ++i) one_splat(lin, q + 4 * i, s + 3 * i, qo + 4 * i, so + 3 * i);
-  };
-  std::vector<std::thread> pool;
-  const int64_t step = (n + threads - 1) / threads;
-  for (int t = 1; t < threads; ++t) pool.emplace_back(work, std::min(n, t * step), std::min(n, (t + 1) * step));
-  work(0, std::min(n, step));
-  for (auto& th : pool) th.join();
+  });
 }
 
 }  // namespace

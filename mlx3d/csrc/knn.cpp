@@ -1,12 +1,13 @@
 #include "knn.h"
 
+#include "primitive_util.h"
+
 #include <algorithm>
 #include <atomic>
 #include <cmath>
 #include <limits>
 #include <stdexcept>
 #include <string>
-#include <system_error>
 #include <thread>
 #include <utility>
 
@@ -330,20 +331,7 @@ void KDTree::query(const QueryArgs& args) const {
     }
   };
 
-  if (threads == 1) {
-    worker(&scratch[0]);
-    return;
-  }
-  std::vector<std::thread> pool;
-  pool.reserve(static_cast<size_t>(threads - 1));
-  try {
-    for (int t = 1; t < threads; ++t) pool.emplace_back(worker, &scratch[t]);
-  } catch (const std::system_error&) {
-    // Could not start more threads: the ones running (and this one) share
-    // the remaining blocks through `next`.
-  }
-  worker(&scratch[0]);
-  for (auto& th : pool) th.join();
+  run_threads(threads, [&](int t) { worker(&scratch[t]); });
 }
 
 }  // namespace mlx3d::knn
