@@ -1076,20 +1076,22 @@ struct BackwardIn {
   const float* g_alpha;
 };
 
-// Writes the tile's gradients to entry_grad[(e - lo) * K + field] for each of
-// its entries e (K = 6 + C fields: mean_x, mean_y, conic a, b, c, opacity,
-// features; zero for an entry no pixel uses). Pixel blocks are kLanes
-// consecutive pixels in row-major order (the lane sums, and so the gradients'
-// last bits, depend on this grouping); each walks back from the largest
-// `last` of its pixels, over the entries that reach it.
+// Writes the tile's gradients to entry_grad[(e - lo) * K + field] for its
+// entries e before the last one any pixel uses (K = 6 + C fields: mean_x,
+// mean_y, conic a, b, c, opacity, features; zero for an entry no pixel uses)
+// and returns how many that is: the entries after them have zero gradients,
+// left unwritten. Pixel blocks are kLanes consecutive pixels in row-major order
+// (the lane sums, and so the gradients' last bits, depend on this grouping);
+// each walks back from the largest `last` of its pixels, over the entries that
+// reach it.
 template <class LF, class LI, int CC>
-RM_INLINE void backward_tile_impl(const Inputs& in, const Geometry& geo, int t, Scratch& s, const BackwardIn& bw,
-                                  float* entry_grad) {
+RM_INLINE int backward_tile_impl(const Inputs& in, const Geometry& geo, int t, Scratch& s, const BackwardIn& bw,
+                                 float* entry_grad) {
   constexpr int kLanes = lanes_of<LF>();
   int64_t lo, hi;
   tile_range(in, geo, t, lo, hi);
   const int n = static_cast<int>(hi - lo);
-  if (n == 0) return;
+  if (n == 0) return 0;
   const int C = CC > 0 ? CC : geo.channels;
   const int K = kGradFixed + C;
   const TileBox box = tile_box(geo, t);
@@ -1110,9 +1112,7 @@ RM_INLINE void backward_tile_impl(const Inputs& in, const Geometry& geo, int t, 
     s.block_kmax[b] = km;
     kmax = std::max(kmax, km);
   }
-  // Entries from kmax on contribute to no pixel.
-  std::fill(entry_grad + static_cast<size_t>(kmax) * K, entry_grad + static_cast<size_t>(n) * K, 0.0f);
-  if (kmax == 0) return;
+  if (kmax == 0) return 0;  // entries from kmax on contribute to no pixel
   s.reserve(kmax, C, box.h);
   s.gather(in, geo, lo, 0, kmax);
 
@@ -1216,6 +1216,7 @@ RM_INLINE void backward_tile_impl(const Inputs& in, const Geometry& geo, int t, 
     }
   }
   lane_totals(sums, static_cast<size_t>(kmax) * K, entry_grad);
+  return kmax;
 }
 
 // ------------------------------------------------------------- variants
@@ -1228,7 +1229,7 @@ RM_INLINE void backward_tile_impl(const Inputs& in, const Geometry& geo, int t, 
 // is also instantiated for 1 to 4 channels (features held in registers) and
 // for any number of channels; these give identical results.
 using ForwardTileFn = void (*)(const Inputs&, const Geometry&, int, Scratch&, const ForwardOut&);
-using BackwardTileFn = void (*)(const Inputs&, const Geometry&, int, Scratch&, const BackwardIn&, float*);
+using BackwardTileFn = int (*)(const Inputs&, const Geometry&, int, Scratch&, const BackwardIn&, float*);
 
 #if defined(MLX3D_RASTER_VECTOR_LANES)
 using BaseF = LaneF4;
@@ -1243,8 +1244,8 @@ void forward_tile_base(const Inputs& in, const Geometry& geo, int t, Scratch& s,
   forward_tile_impl<BaseF, BaseI, CC, kSurface>(in, geo, t, s, out);
 }
 template <int CC>
-void backward_tile_base(const Inputs& in, const Geometry& geo, int t, Scratch& s, const BackwardIn& bw, float* eg) {
-  backward_tile_impl<BaseF, BaseI, CC>(in, geo, t, s, bw, eg);
+int backward_tile_base(const Inputs& in, const Geometry& geo, int t, Scratch& s, const BackwardIn& bw, float* eg) {
+  return backward_tile_impl<BaseF, BaseI, CC>(in, geo, t, s, bw, eg);
 }
 
 #if defined(MLX3D_RASTER_AVX2)
@@ -1254,9 +1255,9 @@ __attribute__((target("avx2"))) void forward_tile_avx2(const Inputs& in, const G
   forward_tile_impl<LaneF8, LaneI8, CC, kSurface>(in, geo, t, s, out);
 }
 template <int CC>
-__attribute__((target("avx2"))) void backward_tile_avx2(const Inputs& in, const Geometry& geo, int t, Scratch& s,
-                                                        const BackwardIn& bw, float* eg) {
-  backward_tile_impl<LaneF8, LaneI8, CC>(in, geo, t, s, bw, eg);
+__attribute__((target("avx2"))) int backward_tile_avx2(const Inputs& in, const Geometry& geo, int t, Scratch& s,
+                                                       const BackwardIn& bw, float* eg) {
+  return backward_tile_impl<LaneF8, LaneI8, CC>(in, geo, t, s, bw, eg);
 }
 #endif
 
@@ -1389,7 +1390,8 @@ constexpr int64_t kSlotBudget = int64_t(1) << 20;
 // sizes"), so instead it overlaps the other threads' tiles: thread 0 sums chunk c as soon as all of
 // its tiles are done, while the others go on with chunk c + 1 (a tile of chunk c + 2 waits until
 // chunk c is summed, whose buffer it reuses). The slot buffers are left uninitialised: each tile
-// zeroes its own slots on the thread that fills them.
+// writes the slots of its entries up to its last used one, and only those are summed (the others'
+// gradients are zero, and adding +0 changes no sum: a sum from +0 is never -0).
 void accumulate_entries(Inputs in, const Geometry& geo, int num_threads, const BackwardIn& bw, float* acc) {
   const int C = geo.channels;
   const int K = kGradFixed + C;
@@ -1419,14 +1421,16 @@ void accumulate_entries(Inputs in, const Geometry& geo, int num_threads, const B
   std::unique_ptr<float[]> buffers(new float[(chunks > 1 ? 2 : 1) * buffer_floats]);
   auto buffer_of = [&](int c) { return buffers.get() + static_cast<size_t>(c % 2) * buffer_floats; };
 
-  std::atomic<int> summed(0);  // chunks [0, summed) are in acc
+  std::vector<int> used(tiles);  // entries with slots written, per tile
+  std::atomic<int> summed(0);   // chunks [0, summed) are in acc
   std::unique_ptr<std::atomic<int>[]> tiles_left(new std::atomic<int>[chunks]);
   for (int c = 0; c < chunks; ++c) tiles_left[c].store(chunk_start[c + 1] - chunk_start[c]);
   // Thread 0: sums every chunk whose tiles are all done, in order; returns whether it summed one.
   auto sum_ready = [&]() {
     bool any = false;
     for (int c = summed.load(std::memory_order_relaxed); c < chunks && tiles_left[c].load(std::memory_order_acquire) == 0; ++c) {
-      add_slots(in, N, K, ranges[chunk_start[c]], ranges[chunk_start[c + 1]], buffer_of(c), acc);
+      for (int t = chunk_start[c]; t < chunk_start[c + 1]; ++t)
+        add_slots(in, N, K, ranges[t], ranges[t] + used[t], buffer_of(c) + (ranges[t] - ranges[chunk_start[c]]) * K, acc);
       summed.store(c + 1, std::memory_order_release);
       any = true;
     }
@@ -1436,7 +1440,7 @@ void accumulate_entries(Inputs in, const Geometry& geo, int num_threads, const B
     const int c = chunk_of[t];
     while (summed.load(std::memory_order_acquire) < c - 1)  // chunk c - 2 still holds the buffer
       if (id != 0 || !sum_ready()) std::this_thread::yield();
-    backward_tile(in, geo, t, scratch[id], bw, buffer_of(c) + (ranges[t] - ranges[chunk_start[c]]) * K);
+    used[t] = backward_tile(in, geo, t, scratch[id], bw, buffer_of(c) + (ranges[t] - ranges[chunk_start[c]]) * K);
     tiles_left[c].fetch_sub(1, std::memory_order_acq_rel);
     if (id == 0) sum_ready();
   });
