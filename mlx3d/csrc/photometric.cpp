@@ -49,24 +49,8 @@ struct Image {
   size_t size() const { return size_t(h) * w * c; }
 };
 
-// F: float or Lanes (one element or kLanes consecutive ones).
-template <class F>
-MLX3D_LANES_INLINE F load_as(const float* p) {
-  if constexpr (std::is_same_v<F, float>)
-    return *p;
-  else
-    return lanes_at(p);
-}
-
-template <class F>
-MLX3D_LANES_INLINE void store_as(float* p, F v) {
-  if constexpr (std::is_same_v<F, float>)
-    *p = v;
-  else
-    put_lanes(p, v);
-}
-
-// The row passes below are also compiled for AVX2 (MLX3D_AVX2_CLONES, primitive_util.h). Each output
+// The row passes below are also compiled for AVX2 (MLX3D_AVX2_CLONES, primitive_util.h); F in the
+// templates below is float or Lanes (one element or kLanes consecutive ones). Each output
 // element is taps[r] * centre, then + taps[k] * (the two elements r - k away) for k = 0 .. r - 1, in that
 // order. The passes run over 4 lane groups of a row at a time, whose sums stay in registers over all the
 // taps (one store per element instead of one per tap).
@@ -78,17 +62,17 @@ MLX3D_LANES_INLINE void filter_at(float* out, const float* mid, const float* con
                                   const float* taps, int r, int j) {
   constexpr int kStep = sizeof(F) / sizeof(float);
   F acc[U];
-  for (int u = 0; u < U; ++u) acc[u] = taps[r] * load_as<F>(mid + j + u * kStep);
+  for (int u = 0; u < U; ++u) acc[u] = taps[r] * lanes_at<F>(mid + j + u * kStep);
   for (int k = 0; k < r; ++k) {
     const float t = taps[k];
     if (a[k] && d[k])
-      for (int u = 0; u < U; ++u) acc[u] += t * (load_as<F>(a[k] + j + u * kStep) + load_as<F>(d[k] + j + u * kStep));
+      for (int u = 0; u < U; ++u) acc[u] += t * (lanes_at<F>(a[k] + j + u * kStep) + lanes_at<F>(d[k] + j + u * kStep));
     else if (a[k])
-      for (int u = 0; u < U; ++u) acc[u] += t * load_as<F>(a[k] + j + u * kStep);
+      for (int u = 0; u < U; ++u) acc[u] += t * lanes_at<F>(a[k] + j + u * kStep);
     else if (d[k])
-      for (int u = 0; u < U; ++u) acc[u] += t * load_as<F>(d[k] + j + u * kStep);
+      for (int u = 0; u < U; ++u) acc[u] += t * lanes_at<F>(d[k] + j + u * kStep);
   }
-  for (int u = 0; u < U; ++u) store_as(out + j + u * kStep, acc[u]);
+  for (int u = 0; u < U; ++u) put_lanes(out + j + u * kStep, acc[u]);
 }
 
 // filter_at over elements [0, n).
@@ -161,19 +145,19 @@ MLX3D_LANES_INLINE F abs_of(F v) {
 template <class F>
 MLX3D_LANES_INLINE void ssim_element(const SsimMaps& m, const float* g_row, float* s_row, float* l_row, size_t base, int j) {
   const size_t q = base + j;
-  const F m1 = load_as<F>(m.mu_x + q), m2 = load_as<F>(m.mu_y + q);
-  const F s11 = load_as<F>(m.e_xx + q) - m1 * m1, s22 = load_as<F>(m.e_yy + q) - m2 * m2;
-  const F s12 = load_as<F>(m.e_xy + q) - m1 * m2;
+  const F m1 = lanes_at<F>(m.mu_x + q), m2 = lanes_at<F>(m.mu_y + q);
+  const F s11 = lanes_at<F>(m.e_xx + q) - m1 * m1, s22 = lanes_at<F>(m.e_yy + q) - m2 * m2;
+  const F s12 = lanes_at<F>(m.e_xy + q) - m1 * m2;
   const F a1 = 2.0f * m1 * m2 + kC1, a2 = 2.0f * s12 + kC2;
   const F b1 = m1 * m1 + m2 * m2 + kC1, b2 = s11 + s22 + kC2;
   const F den = b1 * b2, s = a1 * a2 / den;
   const F ds_a1 = a2 / den, ds_a2 = a1 / den, ds_b1 = -s / b1, ds_b2 = -s / b2;
-  const F g = load_as<F>(g_row + j);
-  store_as(s_row + j, s);
-  store_as(l_row + j, abs_of(load_as<F>(m.x + q) - load_as<F>(m.y + q)));
-  store_as(m.d_mu + q, g * (ds_a1 * 2.0f * m2 - ds_a2 * 2.0f * m2 + ds_b1 * 2.0f * m1 - ds_b2 * 2.0f * m1));
-  store_as(m.d_xx + q, g * ds_b2);
-  store_as(m.d_xy + q, g * 2.0f * ds_a2);
+  const F g = lanes_at<F>(g_row + j);
+  put_lanes(s_row + j, s);
+  put_lanes(l_row + j, abs_of(lanes_at<F>(m.x + q) - lanes_at<F>(m.y + q)));
+  put_lanes(m.d_mu + q, g * (ds_a1 * 2.0f * m2 - ds_a2 * 2.0f * m2 + ds_b1 * 2.0f * m1 - ds_b2 * 2.0f * m1));
+  put_lanes(m.d_xx + q, g * ds_b2);
+  put_lanes(m.d_xy + q, g * 2.0f * ds_a2);
 }
 
 // Row i of the SSIM map pass: the d_* maps of its elements, and the row's w-weighted sums of the

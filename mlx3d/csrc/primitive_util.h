@@ -71,14 +71,19 @@ typedef float Lanes;
 #define MLX3D_LANES_INLINE inline
 #endif
 
-// kLanes floats from p (any alignment) as lanes, and back.
-MLX3D_LANES_INLINE Lanes lanes_at(const float* p) {
-  Lanes v;
+// kLanes floats from p (any alignment) as lanes, and back; with F = float, one float (for the tails of
+// lane loops written once for both).
+template <class F = Lanes>
+MLX3D_LANES_INLINE F lanes_at(const float* p) {
+  F v;
   std::memcpy(&v, p, sizeof(v));
   return v;
 }
 
-MLX3D_LANES_INLINE void put_lanes(float* p, Lanes v) { std::memcpy(p, &v, sizeof(v)); }
+template <class F>
+MLX3D_LANES_INLINE void put_lanes(float* p, F v) {
+  std::memcpy(p, &v, sizeof(v));
+}
 
 // Threads to use for `work_items` items: num_threads (0: all hardware threads), at most one per item.
 inline int resolve_threads(int num_threads, int work_items) {
@@ -120,11 +125,7 @@ class WorkerPool {
   bool run(int n, const std::function<void(int)>& task) {
     std::unique_lock<std::mutex> busy(busy_, std::try_to_lock);
     if (!busy.owns_lock()) return false;
-    while (static_cast<int>(workers_.size()) < n - 1) {
-      const int index = static_cast<int>(workers_.size()) + 1;
-      workers_.emplace_back([this, index] { work(index); });
-      workers_.back().detach();
-    }
+    for (; workers_ < n - 1; ++workers_) std::thread([this, index = workers_ + 1] { work(index); }).detach();
     task_.store(&task, std::memory_order_relaxed);
     remaining_.store(n - 1, std::memory_order_relaxed);
     {
@@ -188,7 +189,7 @@ class WorkerPool {
   std::atomic<uint64_t> job_{0};  // job number << 32 | its thread count
   std::atomic<int> remaining_{0};  // workers' tasks of the current job not yet done
   std::atomic<const std::function<void(int)>*> task_{nullptr};
-  std::vector<std::thread> workers_;
+  int workers_ = 0;  // started (detached; they run for the process's life), indices 1 .. workers_
 };
 
 // Runs task(i) for i in [0, n) at once, one thread each (the caller runs i = 0): on the worker pool, or

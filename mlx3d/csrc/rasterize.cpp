@@ -1419,7 +1419,11 @@ void accumulate_entries(Inputs in, const Geometry& geo, int num_threads, const B
   const int chunks = static_cast<int>(chunk_start.size()) - 1;
   const size_t buffer_floats = static_cast<size_t>(largest) * K;
   std::unique_ptr<float[]> buffers(new float[(chunks > 1 ? 2 : 1) * buffer_floats]);
-  auto buffer_of = [&](int c) { return buffers.get() + static_cast<size_t>(c % 2) * buffer_floats; };
+  // Tile t's slots: in its chunk's buffer (chunks alternate between the two), after the chunk's earlier tiles.
+  auto slots_of = [&](int t) {
+    const int c = chunk_of[t];
+    return buffers.get() + static_cast<size_t>(c % 2) * buffer_floats + (ranges[t] - ranges[chunk_start[c]]) * K;
+  };
 
   std::vector<int> used(tiles);  // entries with slots written, per tile
   std::atomic<int> summed(0);   // chunks [0, summed) are in acc
@@ -1429,8 +1433,7 @@ void accumulate_entries(Inputs in, const Geometry& geo, int num_threads, const B
   auto sum_ready = [&]() {
     bool any = false;
     for (int c = summed.load(std::memory_order_relaxed); c < chunks && tiles_left[c].load(std::memory_order_acquire) == 0; ++c) {
-      for (int t = chunk_start[c]; t < chunk_start[c + 1]; ++t)
-        add_slots(in, N, K, ranges[t], ranges[t] + used[t], buffer_of(c) + (ranges[t] - ranges[chunk_start[c]]) * K, acc);
+      for (int t = chunk_start[c]; t < chunk_start[c + 1]; ++t) add_slots(in, N, K, ranges[t], ranges[t] + used[t], slots_of(t), acc);
       summed.store(c + 1, std::memory_order_release);
       any = true;
     }
@@ -1440,7 +1443,7 @@ void accumulate_entries(Inputs in, const Geometry& geo, int num_threads, const B
     const int c = chunk_of[t];
     while (summed.load(std::memory_order_acquire) < c - 1)  // chunk c - 2 still holds the buffer
       if (id != 0 || !sum_ready()) std::this_thread::yield();
-    used[t] = backward_tile(in, geo, t, scratch[id], bw, buffer_of(c) + (ranges[t] - ranges[chunk_start[c]]) * K);
+    used[t] = backward_tile(in, geo, t, scratch[id], bw, slots_of(t));
     tiles_left[c].fetch_sub(1, std::memory_order_acq_rel);
     if (id == 0) sum_ready();
   });
