@@ -214,7 +214,8 @@ def child(args) -> None:
 
     threads = _thread_counts(args.threads)
     model, camera, target = _setup(args.gaussians, args.scale)
-    config = TrainerConfig(steps=10**6, densify_from=10**6, sh_increase_every=0, cache_limit_gb=args.cache_limit)
+    # vanilla during densification (its statistics gathered), with no densification inside the timed steps
+    config = TrainerConfig(steps=10**6, densify_from=10**5, densify_until=10**6, sh_increase_every=0, cache_limit_gb=args.cache_limit)
     trainer = GaussianTrainer(model, config, scene_extent=5.0)
     trainer.active_sh_degree = 3
     trainer.step(camera, target)  # warm-up: Adam moments, compilation (then one more per thread count)

@@ -24,14 +24,14 @@ def problem(camera_model="pinhole"):
 
 # (config, camera model, step, stages that must run, stages that must not)
 CASES = [
-    (dict(), "pinhole", 0, {"project_ewa", "eval_sh_degree_0", "rasterize_rgb", "loss_l1", "loss_dssim"},
+    (dict(), "pinhole", 0, {"project_ewa", "eval_sh_degree_0", "rasterize_rgb", "loss_l1", "loss_dssim", "screen_statistics"},
      {"project_ut", "antialias_compensation", "gaussian_normals", "bilateral_grid", "loss_depth_variance", "sgld_noise", "thickness_clamp"}),
     (dict(lambda_dssim=0.0), "pinhole", 0, {"loss_l1"}, {"loss_dssim"}),
     (dict(antialias=True), "pinhole", 0, {"antialias_compensation"}, set()),
     (dict(projection="ut"), "pinhole", 0, {"project_ut"}, {"project_ewa"}),
     (dict(), "fisheye", 0, {"project_ut"}, {"project_ewa"}),
     (dict(sh_increase_every=1), "pinhole", 2, {"eval_sh_degree_2"}, {"eval_sh_degree_0"}),
-    (dict(method="mcmc"), "pinhole", 0, {"loss_opacity_l1", "loss_scale_l1", "sgld_noise"}, {"thickness_clamp", "gaussian_normals"}),
+    (dict(method="mcmc"), "pinhole", 0, {"loss_opacity_l1", "loss_scale_l1", "sgld_noise"}, {"thickness_clamp", "gaussian_normals", "screen_statistics"}),
     (dict(method="mcmc", mcmc_opacity_reg=0.0, mcmc_noise_lr=0.0), "pinhole", 0, {"loss_scale_l1"}, {"loss_opacity_l1", "sgld_noise"}),
     (dict(method="2dgs"), "pinhole", 0, {"thickness_clamp", "rasterize_rgb"}, {"gaussian_normals", "loss_depth_variance", "loss_normal_consistency"}),
     (dict(method="2dgs", geometry_from=0), "pinhole", 0,
@@ -41,7 +41,11 @@ CASES = [
     (dict(lambda_2d_normal_consistency=0.1, geometry_from=0), "pinhole", 0, {"rasterize_rgb+depth+normals", "loss_normal_consistency"}, {"thickness_clamp"}),
     (dict(bilateral_grid=True), "pinhole", 0, {"bilateral_grid", "loss_bilateral_tv"}, set()),
     (dict(bilateral_grid=True, lambda_bilateral_tv=0.0), "pinhole", 0, {"bilateral_grid"}, {"loss_bilateral_tv"}),
-    (dict(densify_from=0, densify_every=1), "pinhole", 0, {"densify"}, {"relocate"}),
+    (dict(densify_from=0, densify_every=1), "pinhole", 0, {"densify", "screen_statistics"}, {"relocate"}),
+    # the densification statistics are gathered up to the last densification, and not when none comes
+    (dict(densify_from=0, densify_every=10, densify_until=50), "pinhole", 49, {"densify", "screen_statistics"}, set()),
+    (dict(densify_from=0, densify_every=10, densify_until=50), "pinhole", 50, set(), {"densify", "screen_statistics"}),
+    (dict(densify_from=60, densify_until=90), "pinhole", 0, set(), {"screen_statistics"}),
 ]
 
 
@@ -78,5 +82,5 @@ def test_info_plan_prints_the_stages(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "render:              project_ut -> bin_tiles -> eval_sh_degree_2 -> rasterize_rgb" in out
     assert "training step 2,000 (2dgs, SH degree 1): project_ut" in out
-    assert "loss_normal_consistency -> adam -> thickness_clamp -> sh_up" in out
+    assert "loss_normal_consistency -> adam -> thickness_clamp -> screen_statistics -> sh_up" in out
     assert "not run:             antialias_compensation, bilateral_grid" in out

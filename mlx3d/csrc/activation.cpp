@@ -40,7 +40,7 @@ MLX3D_FMA_CLONES __attribute__((flatten)) void run_range(const float* x, float* 
 
 template <class Op>
 void run(const float* x, float* y, int64_t n, int num_threads) {
-  parallel_ranges(n, num_threads, kBlock, [x, y](int64_t lo, int64_t hi) { run_range<Op>(x, y, lo, hi); });
+  parallel_blocks(n, num_threads, kBlock, [x, y](int64_t lo, int64_t hi) { run_range<Op>(x, y, lo, hi); });
 }
 
 class Activation : public CpuPrimitive {

@@ -145,7 +145,7 @@ class AdamMoment : public AdamBase {
     const int64_t n = inputs[0].size();
     const float a = squared_ ? s_.b2 : s_.b1, one_minus_a = squared_ ? s_.one_minus_b2 : s_.one_minus_b1;
     encoder.dispatch([=, squared = squared_, threads = num_threads_]() {
-      parallel_ranges(n, threads, kBlock, [=](int64_t lo, int64_t hi) { moment_range(g, x, out, a, one_minus_a, squared, lo, hi); });
+      parallel_blocks(n, threads, kBlock, [=](int64_t lo, int64_t hi) { moment_range(g, x, out, a, one_minus_a, squared, lo, hi); });
     });
   }
 
@@ -170,7 +170,7 @@ class AdamParam : public AdamBase {
     float* po = outputs[0].data<float>();
     const int64_t n = p.size();
     encoder.dispatch([=, s = s_, threads = num_threads_]() {
-      parallel_ranges(n, threads, kBlock, [=](int64_t lo, int64_t hi) { param_range(pp, m, v, po, s, lo, hi); });
+      parallel_blocks(n, threads, kBlock, [=](int64_t lo, int64_t hi) { param_range(pp, m, v, po, s, lo, hi); });
     });
   }
 
@@ -194,7 +194,7 @@ class AllFinite : public CpuPrimitive {
     encoder.dispatch([arrays, out, threads = num_threads_]() {
       std::atomic<bool> finite(true);
       for (const auto& [x, n] : arrays) {
-        parallel_ranges(n, threads, kBlock, [x = x, &finite](int64_t lo, int64_t hi) {
+        parallel_blocks(n, threads, kBlock, [x = x, &finite](int64_t lo, int64_t hi) {
           uint32_t bad = 0;
           for (int64_t i = lo; i < hi; ++i) bad |= uint32_t(non_finite(x[i]));
           if (bad) finite.store(false, std::memory_order_relaxed);

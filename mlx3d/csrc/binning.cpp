@@ -117,7 +117,7 @@ inline void for_each_tile(const Rect& r, int32_t tiles_x, Fn&& fn) {
 }
 
 // Work layout (threaded; the result does not depend on the thread count): the depth-sorted Gaussians are cut
-// into one contiguous chunk per thread. Each chunk counts its entries per tile; a tile's bucket then holds
+// into one contiguous chunk per thread, with about equal entries (balanced_chunks). Each chunk counts its entries per tile; a tile's bucket then holds
 // chunk 0's entries, then chunk 1's, ..., so chunk c starts writing tile t at offsets[t] + the counts of
 // chunks before c, and every thread fills its own part of each bucket in sorted order.
 // radii (N,), with conics (N,3) and opacities (N,) or neither: the half-extents above.
@@ -127,6 +127,75 @@ ExtentInputs extent_inputs(const Vec1& radii, const std::optional<Vec3>& conics,
   if (conics && (static_cast<int64_t>(conics->shape(0)) != n || static_cast<int64_t>(opacities->shape(0)) != n))
     throw nb::value_error("bin_tiles: conics and opacities must have one row per Gaussian");
   return {radii.data(), conics ? conics->data() : nullptr, opacities ? opacities->data() : nullptr};
+}
+
+// Sorts keys (depth key << 32 | index, listed in index order) into the order of the unique 64-bit keys: a
+// stable LSD radix sort on the depth keys, 8 bits per pass (a pass whose digit all keys share is skipped),
+// each pass threaded: every chunk counts its digits, then writes its keys in order after the earlier
+// chunks' keys of the same digit. std::sort of the 64-bit keys plus merging the chunks took 4x the time.
+void sort_by_depth(std::vector<uint64_t>& keys, int chunks, int64_t min_per_thread) {
+  const int64_t k = static_cast<int64_t>(keys.size());
+  const RangeSplit split = split_ranges(k, chunks, min_per_thread);
+  std::vector<uint64_t> other(k);
+  std::vector<int64_t> counts(static_cast<size_t>(split.threads) * 256);
+  for (int shift = 32; shift < 64; shift += 8) {
+    std::fill(counts.begin(), counts.end(), 0);
+    const uint64_t* src = keys.data();
+    parallel_ranges(k, split.threads, min_per_thread, [&](int64_t a, int64_t b) {
+      int64_t* c = &counts[static_cast<size_t>(split.index(a)) * 256];
+      for (int64_t j = a; j < b; ++j) ++c[(src[j] >> shift) & 255];
+    });
+    int64_t total = 0;
+    bool shared = false;  // one digit for all keys: the pass would not move them
+    for (int d = 0; d < 256; ++d) {
+      int64_t of_digit = 0;
+      for (int c = 0; c < split.threads; ++c) {
+        int64_t& slot = counts[static_cast<size_t>(c) * 256 + d];
+        const int64_t here = slot;
+        slot = total;  // now: chunk c's first position for digit d
+        total += here;
+        of_digit += here;
+      }
+      shared = shared || of_digit == k;
+    }
+    if (shared) continue;
+    uint64_t* dst = other.data();
+    parallel_ranges(k, split.threads, min_per_thread, [&](int64_t a, int64_t b) {
+      int64_t* cursor = &counts[static_cast<size_t>(split.index(a)) * 256];
+      for (int64_t j = a; j < b; ++j) dst[cursor[(src[j] >> shift) & 255]++] = src[j];
+    });
+    keys.swap(other);
+  }
+}
+
+// Boundaries (chunks + 1 positions) that cut the depth-sorted rectangles rects[0, k) into contiguous
+// chunks with about the same number of tile entries each (near Gaussians cover many tiles: equal counts of
+// Gaussians left one core idle for much of the count and fill passes). Each rectangle covers >= 1 tile.
+std::vector<int64_t> balanced_chunks(const Rect* rects, int64_t k, int chunks) {
+  constexpr int64_t kBlock = 4096;  // rectangles whose entries are summed together before the walk
+  auto entries = [&](int64_t j) { return int64_t(rects[j].x1 - rects[j].x0) * (rects[j].y1 - rects[j].y0); };
+  const int blocks = static_cast<int>((k + kBlock - 1) / kBlock);
+  std::vector<int64_t> block_entries(blocks, 0);
+  parallel_items(0, blocks, chunks, [&](int blk, int) {
+    int64_t sum = 0;
+    for (int64_t j = blk * kBlock; j < std::min(k, (blk + 1) * kBlock); ++j) sum += entries(j);
+    block_entries[blk] = sum;
+  });
+  int64_t total = 0;
+  for (int64_t e : block_entries) total += e;
+  std::vector<int64_t> bound(chunks + 1, k);
+  bound[0] = 0;
+  int c = 1;
+  int64_t before = 0;  // entries of the blocks before blk
+  for (int blk = 0; blk < blocks && c < chunks; before += block_entries[blk++]) {
+    // chunk c starts after the rectangles whose entries, with all before them, stay within total * c / chunks
+    for (int64_t target; c < chunks && (target = total * c / chunks) < before + block_entries[blk]; ++c) {
+      int64_t j = blk * kBlock, sum = before;
+      while (sum + entries(j) <= target) sum += entries(j++);
+      bound[c] = j;
+    }
+  }
+  return bound;
 }
 
 std::pair<mx::array, mx::array> bin_tiles(const Vec2& means2d, const Vec1& radii, const Vec1& depths, int width, int height, int tile_size,
@@ -146,7 +215,7 @@ std::pair<mx::array, mx::array> bin_tiles(const Vec2& means2d, const Vec1& radii
     nb::gil_scoped_release release;
     constexpr int64_t kMinPerThread = 16384;
     HugePageArray<Rect> rects(n);  // read in depth order: random
-    parallel_ranges(n, num_threads, kMinPerThread, [&](int64_t a, int64_t b) {
+    parallel_blocks(n, num_threads, kMinPerThread, [&](int64_t a, int64_t b) {
       for (int64_t i = a; i < b; ++i) rects[i] = tile_rect(m, ext, i, tile_size, tiles_x, tiles_y);
     });
     // Gaussians that touch a tile, by (depth key, index): unique 64-bit keys, so any sort is stable. Listed
@@ -168,23 +237,19 @@ std::pair<mx::array, mx::array> bin_tiles(const Vec2& means2d, const Vec1& radii
       for (int64_t i = a; i < b; ++i)
         if (touches(i)) order[j++] = (uint64_t(depth_key(d[i])) << 32) | uint64_t(i);
     });
-    const RangeSplit split = split_ranges(k, num_threads, kMinPerThread);
-    const int chunks = split.threads;
-    // Sort each chunk, then merge neighbours pairwise.
-    parallel_ranges(k, chunks, kMinPerThread, [&](int64_t a, int64_t b) { std::sort(order.begin() + a, order.begin() + b); });
-    for (int64_t width_ = split.step; width_ > 0 && width_ < k; width_ *= 2)
-      for (int64_t a = 0; a + width_ < k; a += 2 * width_)
-        std::inplace_merge(order.begin() + a, order.begin() + a + width_, order.begin() + std::min(k, a + 2 * width_));
+    const int chunks = split_ranges(k, num_threads, kMinPerThread).threads;
+    sort_by_depth(order, chunks, kMinPerThread);
     // The rectangles in that order, gathered once, so that the two passes below read them in sequence.
     HugePageArray<Rect> sorted(k);
-    parallel_ranges(k, chunks, kMinPerThread, [&](int64_t a, int64_t b) {
+    parallel_blocks(k, chunks, kMinPerThread, [&](int64_t a, int64_t b) {
       for (int64_t j = a; j < b; ++j) sorted[j] = rects[order[j] & 0xffffffffu];
     });
+    const std::vector<int64_t> bound = balanced_chunks(sorted.data(), k, chunks);
     // Entries per (chunk, tile), then each chunk's first slot in each bucket.
     std::vector<int64_t> counts(static_cast<size_t>(chunks) * num_tiles, 0);
-    parallel_ranges(k, chunks, kMinPerThread, [&](int64_t a, int64_t b) {
-      int64_t* c = &counts[static_cast<size_t>(split.index(a)) * num_tiles];
-      for (int64_t j = a; j < b; ++j) for_each_tile(sorted[j], tiles_x, [&](int64_t t) { ++c[t]; });
+    run_threads(chunks, [&](int c) {
+      int64_t* count = &counts[static_cast<size_t>(c) * num_tiles];
+      for (int64_t j = bound[c]; j < bound[c + 1]; ++j) for_each_tile(sorted[j], tiles_x, [&](int64_t t) { ++count[t]; });
     });
     for (int64_t t = 0; t < num_tiles; ++t) {
       offsets[t] = static_cast<int32_t>(std::min<int64_t>(total, INT32_MAX));
@@ -198,9 +263,9 @@ std::pair<mx::array, mx::array> bin_tiles(const Vec2& means2d, const Vec1& radii
     offsets[num_tiles] = static_cast<int32_t>(total);
     ids = HugePageArray<int32_t>(total);  // not zeroed: every entry is written below, by the threads; each
                                           // Gaussian writes to one bucket per tile: huge pages spare the TLB
-    parallel_ranges(k, chunks, kMinPerThread, [&](int64_t a, int64_t b) {
-      int64_t* cursor = &counts[static_cast<size_t>(split.index(a)) * num_tiles];
-      for (int64_t j = a; j < b; ++j) {
+    run_threads(chunks, [&](int c) {
+      int64_t* cursor = &counts[static_cast<size_t>(c) * num_tiles];
+      for (int64_t j = bound[c]; j < bound[c + 1]; ++j) {
         const int32_t i = static_cast<int32_t>(order[j] & 0xffffffffu);
         for_each_tile(sorted[j], tiles_x, [&](int64_t t) { ids[cursor[t]++] = i; });
       }

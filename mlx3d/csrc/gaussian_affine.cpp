@@ -131,7 +131,7 @@ void affine_covariances(const Lin& linear, const Quats& quats, const Scales& log
   float* qo = quats_out.data();
   float* so = log_scales_out.data();
   nb::gil_scoped_release release;
-  parallel_ranges(n, num_threads, 4096, [=](int64_t lo, int64_t hi) {
+  parallel_blocks(n, num_threads, 4096, [=](int64_t lo, int64_t hi) {
     for (int64_t i = lo; i < hi; ++i) one_splat(lin, q + 4 * i, s + 3 * i, qo + 4 * i, so + 3 * i);
   });
 }

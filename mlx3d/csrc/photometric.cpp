@@ -208,7 +208,7 @@ void run_loss(const float* x, const float* y, const float* w, Image im, float la
   ScratchFloats prod(n), tmp(n), mu_x(n), mu_y(n), e_xx(n), e_yy(n), e_xy(n);  // each fully written before it is read
   auto fill = [&](auto f) {
     float* out = prod.data();
-    parallel_ranges(int64_t(n), num_threads, per_thread, [=](int64_t lo, int64_t hi) {
+    parallel_blocks(int64_t(n), num_threads, per_thread, [=](int64_t lo, int64_t hi) {
       for (int64_t i = lo; i < hi; ++i) out[i] = f(i);
     });
   };
@@ -240,7 +240,7 @@ void run_loss(const float* x, const float* y, const float* w, Image im, float la
   blur(d_xx, e_xx.data(), e_yy.data(), im, taps, num_threads);
   blur(d_xy, e_xy.data(), e_yy.data(), im, taps, num_threads);
   const float l1_scale = static_cast<float>((1.0 - lambda) * inv_w) * inv_c;
-  parallel_ranges(int64_t(n), num_threads, per_thread, [=, mu_x = mu_x.data(), e_xx = e_xx.data(), e_xy = e_xy.data()](int64_t lo, int64_t hi) {
+  parallel_blocks(int64_t(n), num_threads, per_thread, [=, mu_x = mu_x.data(), e_xx = e_xx.data(), e_xy = e_xy.data()](int64_t lo, int64_t hi) {
     for (int64_t q = lo; q < hi; ++q) {
       const float diff = x[q] - y[q];
       const float sign = diff > 0.0f ? 1.0f : (diff < 0.0f ? -1.0f : 0.0f);

@@ -146,7 +146,7 @@ class ProjectEwaBackward : public ProjectBase {
                            outputs[1].data<float>(), outputs[2].data<float>()};
     const int64_t n = inputs[0].shape(0);
     encoder.dispatch([a, n, cam = cam_, threads = num_threads_]() {
-      parallel_ranges(n, threads, kBlock, [a, cam](int64_t lo, int64_t hi) { backward_range(cam, a, lo, hi); });
+      parallel_blocks(n, threads, kBlock, [a, cam](int64_t lo, int64_t hi) { backward_range(cam, a, lo, hi); });
     });
   }
 
@@ -173,7 +173,7 @@ class ProjectEwaForward : public ProjectBase {
                           outputs[4].data<float>(), outputs[2].data<int32_t>()};
     const int64_t n = inputs[0].shape(0);
     encoder.dispatch([a, n, cam = cam_, threads = num_threads_]() {
-      parallel_ranges(n, threads, kBlock, [a, cam](int64_t lo, int64_t hi) { forward_range(cam, a, lo, hi); });
+      parallel_blocks(n, threads, kBlock, [a, cam](int64_t lo, int64_t hi) { forward_range(cam, a, lo, hi); });
     });
   }
 

@@ -1459,11 +1459,11 @@ void run_backward(Inputs in, const Geometry& geo, int num_threads, const Backwar
   // into the four outputs at the end.
   HugePageArray<float> sums(static_cast<size_t>(N) * K);  // updated in random Gaussian order
   float* acc = sums.data();
-  parallel_ranges(N, num_threads, kMinGaussiansPerThread, [acc, K](int64_t g0, int64_t g1) {
+  parallel_blocks(N, num_threads, kMinGaussiansPerThread, [acc, K](int64_t g0, int64_t g1) {
     std::fill(acc + g0 * K, acc + g1 * K, 0.0f);
   });
   if (N > 0 && geo.num_entries > 0 && tiles > 0) accumulate_entries(in, geo, num_threads, bw, acc);
-  parallel_ranges(N, num_threads, kMinGaussiansPerThread, [out, acc, C, K](int64_t g0, int64_t g1) {
+  parallel_blocks(N, num_threads, kMinGaussiansPerThread, [out, acc, C, K](int64_t g0, int64_t g1) {
     for (int64_t g = g0; g < g1; ++g) {
       const float* v = acc + g * K;
       out.means[2 * g] = v[0];

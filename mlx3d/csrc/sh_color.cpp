@@ -165,11 +165,11 @@ MLX3D_AVX2_CLONES void backward_range(const ShInputs& in, const float* cot, floa
 }
 
 void run_forward(ShInputs in, int num_threads, float* rgb) {
-  parallel_ranges(in.n, num_threads, kBlock, [in, rgb](int64_t lo, int64_t hi) { forward_range(in, lo, hi, rgb); });
+  parallel_blocks(in.n, num_threads, kBlock, [in, rgb](int64_t lo, int64_t hi) { forward_range(in, lo, hi, rgb); });
 }
 
 void run_backward(ShInputs in, const float* cot, int num_threads, float* const d_block[2], float* d_means) {
-  parallel_ranges(in.n, num_threads, kBlock,
+  parallel_blocks(in.n, num_threads, kBlock,
                   [in, cot, d_block, d_means](int64_t lo, int64_t hi) { backward_range(in, cot, d_block, d_means, lo, hi); });
 }
 

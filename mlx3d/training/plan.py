@@ -24,6 +24,7 @@ from ..render import RenderPlan, plan_render
 OPTIONAL_STAGES = (
     "antialias_compensation", "gaussian_normals", "bilateral_grid", "loss_dssim", "loss_depth_variance",
     "loss_normal_consistency", "loss_bilateral_tv", "loss_opacity_l1", "loss_scale_l1", "thickness_clamp", "sgld_noise",
+    "screen_statistics",
 )
 GEOMETRY_CHANNELS = ("depth", "depth2", "normals")
 
@@ -35,7 +36,7 @@ class StepPlan:
     render: RenderPlan
     colour_correction: tuple  # ('bilateral_grid',) or ()
     losses: tuple  # loss terms: 'l1', 'dssim', 'depth_variance', 'normal_consistency', 'bilateral_tv', 'opacity_l1', 'scale_l1'
-    after_step: tuple  # 'thickness_clamp' (2dgs), 'sgld_noise' (mcmc)
+    after_step: tuple  # 'thickness_clamp' (2dgs), 'sgld_noise' (mcmc), 'screen_statistics' (until the last densification)
     events: tuple  # schedule events after this step (see trainer.events_at)
 
     @property
@@ -58,6 +59,17 @@ def active_sh_degree(config, steps_done: int, max_degree: int) -> int:
     if not config.sh_increase_every:
         return max_degree
     return min(steps_done // config.sh_increase_every, max_degree)
+
+
+def gathers_screen_statistics(config, step: int) -> bool:
+    """Whether step ``step`` (1-based) adds to the statistics that densification reads (screen-space
+    gradients and radii): only when a 'densify' event comes at this step or later (vanilla and 2DGS;
+    MCMC's relocation and growth read opacities only)."""
+    if config.method == "mcmc":
+        return False
+    first = max(step, config.densify_from + 1)
+    event = -(-first // config.densify_every) * config.densify_every  # the next multiple of densify_every
+    return event <= config.densify_until
 
 
 def step_plan(config, camera, sh_degree: int, step: int = 0, backend: str = "auto") -> StepPlan:
@@ -92,5 +104,7 @@ def step_plan(config, camera, sh_degree: int, step: int = 0, backend: str = "aut
         after.append("thickness_clamp")
     if config.method == "mcmc" and (config.mcmc_noise_lr > 0 or config.mcmc_noise_scale > 0):
         after.append("sgld_noise")
+    if gathers_screen_statistics(config, step + 1):
+        after.append("screen_statistics")
     return StepPlan(render, ("bilateral_grid",) if config.bilateral_grid else (), tuple(losses), tuple(after), events_at(config, step + 1))
 

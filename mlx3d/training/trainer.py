@@ -324,11 +324,18 @@ class GaussianTrainer:
             return loss, out
 
         grid_in = self.grid_optimizer.current(self.bilateral, image_index) if use_grid else mx.zeros((1,))
-        (loss, out), (grads, grad2d, grad_grid) = mx.value_and_grad(loss_fn, argnums=(0, 1, 2))(params, mx.zeros((n, 2)), grid_in)
+        # dL/d(means2d) through a zero offset, only for the densification statistics
+        statistics = "screen_statistics" in plan.after_step
+        if statistics:
+            (loss, out), (grads, grad2d, grad_grid) = mx.value_and_grad(loss_fn, argnums=(0, 1, 2))(params, mx.zeros((n, 2)), grid_in)
+            screen = [grad2d, out["visible"], out["radii"]]
+        else:
+            (loss, out), (grads, grad_grid) = mx.value_and_grad(loss_fn, argnums=(0, 2))(params, None, grid_in)
+            screen = []
         self.optimizer.lrs = self.learning_rates()
         finite = all_finite([loss, *grads.values()] + ([grad_grid] if use_grid else []), r.backend)
         quality = psnr(mx.clip(out["image"], 0, 1), target, mask)
-        mx.eval(loss, grads, grad2d, grad_grid, finite, quality, out["visible"], out["radii"])
+        mx.eval(loss, grads, grad_grid, finite, quality, *screen)
         loss_value = float(loss)
         if not bool(finite):
             raise TrainingError(f"step {self.step_count + 1}: the loss or a gradient is not finite (loss {loss_value}); parameters left at the last good step")
@@ -351,7 +358,9 @@ class GaussianTrainer:
             ran.append("sgld_noise")
         self.step_count += 1
 
-        self.add_screen_statistics(camera, out["visible"], grad2d, out["radii"])
+        if statistics:
+            self.add_screen_statistics(camera, out["visible"], grad2d, out["radii"])
+            ran.append("screen_statistics")
 
         info = {"step": self.step_count, "loss": loss_value, "psnr": float(quality)}
         for key in ("depth_variance_loss", "normal_loss"):
