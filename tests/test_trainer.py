@@ -270,6 +270,56 @@ def test_densification_fires_inside_training():
     assert trainer.optimizer.m["means"].shape[0] == len(trainer.model)
 
 
+def numpy_screen_statistics(accum, count, radius, visible, grad2d, radii, width, height):
+    """The densification statistics as numpy's whole-array expression (the kernel's oracle)."""
+    g = np.asarray(grad2d, dtype=np.float64) * [0.5 * width, 0.5 * height]
+    accum = accum + np.where(visible, np.sqrt(g[:, 0] * g[:, 0] + g[:, 1] * g[:, 1]), 0.0)
+    return accum, count + np.asarray(visible), np.maximum(radius, np.asarray(radii))
+
+
+def test_screen_statistics_kernel_is_the_numpy_expression_bit_for_bit_for_any_thread_count():
+    from mlx3d import native
+
+    rng = np.random.default_rng(3)
+    n = 70_001  # several blocks per thread
+    visible = rng.random(n) < 0.7
+    grad2d = (rng.standard_normal((n, 2)) * 10.0 ** rng.uniform(-12, 3, (n, 1))).astype(np.float32)
+    grad2d[~visible & (rng.random(n) < 0.5)] = np.nan  # ignored where not visible
+    radii = np.where(visible, rng.integers(0, 300, n), 0).astype(np.int32)
+    start = [rng.random(n) * 5, rng.integers(0, 9, n).astype(np.float64), rng.integers(0, 200, n).astype(np.float64)]
+    want = numpy_screen_statistics(*start, visible, grad2d, radii, 648, 420)
+    for threads in (1, 2, 3):
+        got = [a.copy() for a in start]
+        native.core().add_screen_statistics(visible, grad2d, radii, 324.0, 210.0, *got, threads)
+        for a, b in zip(got, want):
+            np.testing.assert_array_equal(a, b)
+    with pytest.raises(ValueError, match="agree on N"):
+        native.core().add_screen_statistics(visible[:-1], grad2d, radii, 1.0, 1.0, *[a.copy() for a in start])
+
+
+def test_a_training_step_adds_its_view_to_the_densification_statistics():
+    model, cams, targets = small_problem(1)
+    seen = []
+
+    class Recording(GaussianTrainer):
+        def add_screen_statistics(self, camera, visible, grad2d, radii):
+            seen.append((np.array(visible), np.array(grad2d), np.array(radii)))
+            super().add_screen_statistics(camera, visible, grad2d, radii)
+
+    trainer = Recording(model, TrainerConfig(steps=10, densify_from=4, densify_every=5, densify_until=5), scene_extent=3.0)
+    want = [trainer.grad_accum.copy(), trainer.grad_count.copy(), trainer.max_radii.copy()]
+    for i in range(3):
+        trainer.step(cams[i], targets[i])
+        want = numpy_screen_statistics(*want, *seen[-1], cams[i].width, cams[i].height)
+    assert len(seen) == 3 and seen[0][0].any() and np.abs(seen[0][1]).max() > 0
+    for a, b in zip((trainer.grad_accum, trainer.grad_count, trainer.max_radii), want):
+        np.testing.assert_array_equal(a, b)
+    # after the last densification (step 5) no step gathers them
+    infos = [trainer.step(cams[i], targets[i]) for i in range(3)]
+    assert infos[1]["densify"] is not None and len(seen) == 5
+    assert "screen_statistics" in infos[1]["stages"] and "screen_statistics" not in infos[2]["stages"]
+
+
 def test_nan_guard_keeps_the_last_good_parameters():
     model, cams, targets = small_problem(2)
     trainer = GaussianTrainer(model, TrainerConfig(steps=10), scene_extent=3.0)

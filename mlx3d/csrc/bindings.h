@@ -14,5 +14,6 @@ void bind_adam(nanobind::module_& m);
 void bind_projection(nanobind::module_& m);
 void bind_photometric(nanobind::module_& m);
 void bind_activation(nanobind::module_& m);
+void bind_screen_statistics(nanobind::module_& m);
 
 }  // namespace mlx3d

@@ -17,7 +17,7 @@ namespace mx = mlx::core;
 using namespace nb::literals;
 
 NB_MODULE(_core, m) {
-  m.doc() = "Compiled kernels of mlx3d (k-nearest neighbours, Gaussian affine maps, the MLX primitives of the projection, SH colour, rasterizer, training loss, Adam and the parameter activations).";
+  m.doc() = "Compiled kernels of mlx3d (k-nearest neighbours, Gaussian affine maps, the MLX primitives of the projection, SH colour, rasterizer, training loss, Adam, the parameter activations and the densification statistics).";
 
   // mlx.core registers the array type; import it first so that the shared
   // "mlx" domain knows it before any function here is called.
@@ -41,4 +41,5 @@ NB_MODULE(_core, m) {
   mlx3d::bind_projection(m);
   mlx3d::bind_photometric(m);
   mlx3d::bind_activation(m);
+  mlx3d::bind_screen_statistics(m);
 }

@@ -384,12 +384,19 @@ class GaussianTrainer:
     def add_screen_statistics(self, camera, visible, grad2d, radii) -> None:
         """Adds one view to the density statistics: visible (N,) bool, grad2d (N,2) dL/d(means2d) in
         pixels, radii (N,). The screen-space gradient is taken in NDC units (as 3DGS's threshold expects)."""
-        visible = np.array(visible)
-        g = np.array(grad2d, dtype=np.float64) * [0.5 * camera.width, 0.5 * camera.height]
-        # whole-array passes: boolean indexing of the arrays took three times as long
-        self.grad_accum += np.where(visible, np.sqrt(g[:, 0] * g[:, 0] + g[:, 1] * g[:, 1]), 0.0)  # |g|, as np.linalg.norm
-        self.grad_count += visible
-        self.max_radii = np.maximum(self.max_radii, np.array(radii))
+        from mlx3d import native
+
+        from ..render.raster_cpu import get_num_threads
+
+        def arg(a, dtype):  # the evaluated MLX array's memory, not a copy
+            return np.ascontiguousarray(np.asarray(a), dtype=dtype)
+
+        # Threaded and in place (mlx3d/csrc/screen_statistics.cpp): the float64 operations of numpy's
+        # grad_accum += np.where(visible, sqrt(gx * gx + gy * gy), 0) with (gx, gy) = grad2d * (W/2, H/2),
+        # grad_count += visible and max_radii = np.maximum(max_radii, radii), bit for bit.
+        native.core().add_screen_statistics(
+            arg(visible, np.bool_), arg(grad2d, np.float32), arg(radii, np.int32), 0.5 * camera.width, 0.5 * camera.height,
+            self.grad_accum, self.grad_count, self.max_radii, get_num_threads())
 
     def _apply_event(self, event: str):
         c = self.config
@@ -505,7 +512,7 @@ class GaussianTrainer:
         trainer.step_count = int(state["step"])
         trainer.active_sh_degree = int(state["active_sh_degree"])
         trainer.opacity_resets = int(state["opacity_resets"])
-        trainer.grad_accum, trainer.grad_count, trainer.max_radii = state["grad_accum"], state["grad_count"], state["max_radii"]
+        trainer.grad_accum, trainer.grad_count, trainer.max_radii = (np.array(state[k], dtype=np.float64) for k in ("grad_accum", "grad_count", "max_radii"))
         trainer.rng.bit_generator.state = json.loads(str(state["rng_state"]))
         if "bilateral_grid" in state:
             trainer._make_grid(state["bilateral_grid"].shape[0])
