@@ -1,6 +1,7 @@
 """The CPU training-loss primitive (photometric_loss(backend='cpu')): loss and gradients with respect
 to the render and the photo against the MLX graph (backend='reference'), with and without a mask,
-images smaller than the SSIM window, and bitwise equality across thread counts."""
+images smaller than the SSIM window, and bitwise equality across thread counts; the MSE primitive
+(mse(backend="cpu"), the per-step PSNR) against the MLX graph and a float64 numpy sum."""
 
 import mlx.core as mx
 import numpy as np
@@ -55,3 +56,23 @@ def test_bitwise_identical_for_any_thread_count():
     for value, grad in runs[1:]:
         assert value == runs[0][0]
         np.testing.assert_array_equal(grad, runs[0][1])
+
+
+@pytest.mark.parametrize("masked", [False, True])
+@pytest.mark.parametrize("clip", [False, True])
+def test_mse_kernel_matches_the_mlx_graph_and_numpy(masked, clip):
+    from mlx3d.training.metrics import mse, psnr
+
+    x, y, m, _ = pair(53, 71, seed=4)
+    x = x * 1.4 - 0.2  # some values outside [0, 1]
+    mask = m if masked else None
+    got = per_thread_count(lambda: float(mse(x, y, mask, clip=clip, backend="cpu")))
+    assert got[1:] == got[:-1]  # the same bits for any thread count
+    assert got[0] == pytest.approx(float(mse(x, y, mask, clip=clip, backend="reference")), rel=LOSS_RTOL)  # float32 sums
+    xa = np.clip(np.array(x, np.float64), 0, 1) if clip else np.array(x, np.float64)
+    per_pixel = ((xa - np.array(y, np.float64)) ** 2).mean(-1)
+    w = np.array(m, np.float64) if masked else np.ones(per_pixel.shape)
+    assert got[0] == pytest.approx((per_pixel * w).sum() / w.sum(), rel=1e-6)
+    assert float(psnr(x, y, mask, clip=clip, backend="cpu")) == pytest.approx(-10 * np.log10(got[0]), rel=1e-6)
+    with pytest.raises(ValueError, match="shapes differ"):
+        mse(x[:, :, :2], y, backend="cpu")

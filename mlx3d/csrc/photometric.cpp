@@ -300,19 +300,99 @@ class PhotometricLoss : public CpuPrimitive {
   int num_threads_;
 };
 
-mx::array photometric_loss(const mx::array& img, const mx::array& ref, std::optional<mx::array> weights, float lambda,
-                           const std::vector<float>& taps, int num_threads) {
-  auto fail = [](const std::string& msg) { throw std::invalid_argument("photometric_loss: " + msg); };
+// The mean squared error of x, clipped to [0, 1] when `clip`, against y: the mean over channels of
+// each pixel's squared differences, then the mean over pixels (w-weighted when w is given, divided by
+// max(sum w, 1e-12)), as mlx3d.training.metrics.mse with the image clipped first. Rows are summed in
+// float64 on threads, then in row order, so the result does not depend on the thread count.
+float run_mse(const float* x, const float* y, const float* w, Image im, bool clip, int num_threads) {
+  std::vector<double> rows(im.h, 0.0), weights(im.h, 0.0);
+  parallel_ranges(im.h, num_threads, kRows, [=, rows = rows.data(), weights = weights.data()](int64_t lo, int64_t hi) {
+    const float inv_c = 1.0f / im.c;
+    for (int i = int(lo); i < int(hi); ++i) {
+      double sum = 0.0, wsum = 0.0;
+      for (int xj = 0; xj < im.w; ++xj) {
+        const size_t q = (size_t(i) * im.w + xj) * im.c;
+        float sq = 0.0f;
+        for (int ch = 0; ch < im.c; ++ch) {
+          const float v = clip ? std::min(std::max(x[q + ch], 0.0f), 1.0f) : x[q + ch];
+          const float d = v - y[q + ch];
+          sq += d * d;
+        }
+        const double wp = w ? w[size_t(i) * im.w + xj] : 1.0;
+        sum += wp * (sq * inv_c);
+        wsum += wp;
+      }
+      rows[i] = sum;
+      weights[i] = wsum;
+    }
+  });
+  double sum = 0.0, wsum = 0.0;
+  for (int i = 0; i < im.h; ++i) sum += rows[i], wsum += weights[i];
+  return static_cast<float>(sum / std::max(wsum, kWeightFloor));
+}
+
+// inputs: img (H,W,C), ref (H,W,C)[, weights (H,W)]; output: the MSE (), clipping img first when `clip`.
+// A metric: no gradient.
+class MeanSquaredError : public CpuPrimitive {
+ public:
+  MeanSquaredError(mx::Stream stream, bool clip, int num_threads)
+      : CpuPrimitive(stream, "Apple GPUs use mlx3d.training.metrics' MLX graph"), clip_(clip), num_threads_(num_threads) {}
+
+  void eval_cpu(const std::vector<mx::array>& inputs, std::vector<mx::array>& outputs) override {
+    auto& encoder = prepare_outputs(*this, inputs, outputs);
+    const Image im{inputs[0].shape(0), inputs[0].shape(1), inputs[0].shape(2)};
+    const float *x = inputs[0].data<float>(), *y = inputs[1].data<float>();
+    const float* w = inputs.size() > 2 ? inputs[2].data<float>() : nullptr;
+    float* out = outputs[0].data<float>();
+    encoder.dispatch([=, clip = clip_, threads = num_threads_]() { *out = run_mse(x, y, w, im, clip, threads); });
+  }
+
+  std::vector<mx::array> vjp(const std::vector<mx::array>&, const std::vector<mx::array>&, const std::vector<int>&,
+                             const std::vector<mx::array>&) override {
+    throw std::runtime_error("mse on the CPU kernel is a metric and has no gradient; use backend='reference' to differentiate it.");
+  }
+
+  std::vector<mx::Shape> output_shapes(const std::vector<mx::array>&) override { return {mx::Shape{}}; }
+
+  const char* name() const override { return "MeanSquaredError"; }
+
+  bool is_equivalent(const mx::Primitive& other) const override {
+    const auto* o = dynamic_cast<const MeanSquaredError*>(&other);
+    return o && o->clip_ == clip_ && o->num_threads_ == num_threads_;
+  }
+
+ private:
+  bool clip_;
+  int num_threads_;
+};
+
+// float32 (H,W,C) images and optional (H,W) weights, as photometric_loss checks them.
+std::vector<mx::array> image_inputs(const char* op, const mx::array& img, const mx::array& ref, const std::optional<mx::array>& weights) {
+  auto fail = [op](const std::string& msg) { throw std::invalid_argument(std::string(op) + ": " + msg); };
   if (img.ndim() != 3 || img.shape() != ref.shape())
     fail("img and ref must be (H, W, C) of one shape, got " + shape_str(img) + " and " + shape_str(ref));
   if (img.dtype() != mx::float32 || ref.dtype() != mx::float32) fail("images must be float32 (the Python wrapper casts them)");
   if (weights && (weights->shape() != mx::Shape{img.shape(0), img.shape(1)} || weights->dtype() != mx::float32))
     fail("weights must be float32 (H, W), got " + shape_str(*weights));
-  if (taps.empty() || taps.size() % 2 == 0) fail("taps must have an odd, positive length");
-  if (!(lambda >= 0.0f && lambda <= 1.0f)) fail("lambda_dssim must be in [0, 1]");
   auto s = mx::default_stream(mx::Device::cpu);
   std::vector<mx::array> inputs = {mx::contiguous(img, false, s), mx::contiguous(ref, false, s)};
   if (weights) inputs.push_back(mx::contiguous(*weights, false, s));
+  return inputs;
+}
+
+mx::array mean_squared_error(const mx::array& img, const mx::array& ref, std::optional<mx::array> weights, bool clip, int num_threads) {
+  std::vector<mx::array> inputs = image_inputs("mse", img, ref, weights);
+  return mx::array(mx::Shape{}, mx::float32, std::make_shared<MeanSquaredError>(mx::default_stream(mx::Device::cpu), clip, num_threads),
+                   std::move(inputs));
+}
+
+mx::array photometric_loss(const mx::array& img, const mx::array& ref, std::optional<mx::array> weights, float lambda,
+                           const std::vector<float>& taps, int num_threads) {
+  auto fail = [](const std::string& msg) { throw std::invalid_argument("photometric_loss: " + msg); };
+  if (taps.empty() || taps.size() % 2 == 0) fail("taps must have an odd, positive length");
+  if (!(lambda >= 0.0f && lambda <= 1.0f)) fail("lambda_dssim must be in [0, 1]");
+  std::vector<mx::array> inputs = image_inputs("photometric_loss", img, ref, weights);
+  auto s = mx::default_stream(mx::Device::cpu);
   return mx::array::make_arrays({mx::Shape{}, img.shape()}, {mx::float32, mx::float32},
                                 std::make_shared<PhotometricLoss>(s, lambda, taps, num_threads), inputs)[0];
 }
@@ -323,6 +403,9 @@ void bind_photometric(nb::module_& m) {
   m.def("photometric_loss", &photometric_loss, "img"_a, "ref"_a, "weights"_a.none(), "lambda_dssim"_a, "taps"_a, "num_threads"_a = 0,
         "(1 - λ) L1 + λ (1 - SSIM) of float32 (H,W,C) images, optionally weighted per pixel (MLX primitive, CPU,\n"
         "threaded; differentiable w.r.t. img and ref). Use mlx3d.training.metrics.photometric_loss(backend='cpu').");
+  m.def("mse", &mean_squared_error, "img"_a, "ref"_a, "weights"_a.none(), "clip"_a = false, "num_threads"_a = 0,
+        "Mean squared error of float32 (H,W,C) images (img clipped to [0, 1] first with clip), optionally weighted per\n"
+        "pixel (MLX primitive, CPU, threaded; no gradient). Use mlx3d.training.metrics.psnr(backend='cpu').");
 }
 
 }  // namespace mlx3d

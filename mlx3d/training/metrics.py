@@ -295,21 +295,38 @@ def l1(img: mx.array, ref: mx.array, mask=None) -> mx.array:
     return _l1_impl(img, ref, w)
 
 
-def mse(img: mx.array, ref: mx.array, mask=None) -> mx.array:
-    """Mean squared error (scalar); with ``mask``, the weighted mean over pixels."""
+def mse(img: mx.array, ref: mx.array, mask=None, *, clip: bool = False, backend: str = "reference") -> mx.array:
+    """Mean squared error (scalar); with ``mask``, the weighted mean over pixels.
+
+    ``clip``: clip ``img`` to [0, 1] first (the image as displayed).
+    ``backend='cpu'`` (or 'auto' off Apple GPUs) sums (H, W, C) images in one
+    threaded C++ pass in float64 (``mlx3d/csrc/photometric.cpp``; no
+    gradient), which the trainer's per-step PSNR uses; 'reference' is the MLX
+    graph (float32 sums), differentiable.
+    """
     _check_pair(img, ref, "mse")
     w = None if mask is None else _as_weights(mask, img, "mse")
-    return _mse_impl(img, ref, w)
+    from ..render.rasterize import resolve_backend
+
+    if resolve_backend(backend) == "cpu" and img.ndim == 3:
+        from mlx3d import native
+
+        from ..render.raster_cpu import get_num_threads
+
+        weights = None if w is None else mx.broadcast_to(w, img.shape[:2]).astype(mx.float32)
+        return native.core().mse(img.astype(mx.float32), ref.astype(mx.float32), weights, clip, get_num_threads())
+    return _mse_impl(mx.clip(img, 0.0, 1.0) if clip else img, ref, w)
 
 
-def psnr(img: mx.array, ref: mx.array, mask=None) -> mx.array:
+def psnr(img: mx.array, ref: mx.array, mask=None, *, clip: bool = False, backend: str = "reference") -> mx.array:
     """Peak signal-to-noise ratio in dB for data range 1: ``-10 log10(MSE)``.
 
     The MSE is averaged over channels and pixels (weighted by ``mask`` if
     given).  Identical images would give +inf; the MSE is floored at 1e-10, so
     the result is capped at :data:`PSNR_MAX_DB` (100 dB) and always finite.
+    ``clip`` and ``backend`` as in :func:`mse`.
     """
-    m = mse(img, ref, mask)
+    m = mse(img, ref, mask, clip=clip, backend=backend)
     return -10.0 * mx.log10(mx.maximum(m, _MSE_FLOOR))
 
 

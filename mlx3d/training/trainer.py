@@ -334,7 +334,7 @@ class GaussianTrainer:
             screen = []
         self.optimizer.lrs = self.learning_rates()
         finite = all_finite([loss, *grads.values()] + ([grad_grid] if use_grid else []), r.backend)
-        quality = psnr(mx.clip(out["image"], 0, 1), target, mask)
+        quality = psnr(out["image"], target, mask, clip=True, backend=r.backend)
         mx.eval(loss, grads, grad_grid, finite, quality, *screen)
         loss_value = float(loss)
         if not bool(finite):
