@@ -11,7 +11,10 @@ RSS) that times every thread count, alternating them step by step
 machine's slow and fast phases fall on all of them alike and the speed-up is
 a ratio within one run. Each thread count also gets the cores it kept busy
 (CPU time over wall time of its steps): below the thread count, the rest is
-serial work or waiting.
+serial work or waiting; and, on Linux, how long per step the process's
+threads were ready to run but waited for a core (the scheduler's run-queue
+delay, ``/proc/self/task/*/schedstat``): on a shared or virtual machine, time
+the machine did not give, which no change here can win back.
 
 ``--profile`` also times each stage of the step on its own, forward and
 backward, through the same public functions the step calls (projection,
@@ -55,25 +58,44 @@ def _median_ms(fn, repeats: int) -> float:
     return 1000.0 * times[len(times) // 2]
 
 
+def _waiting_ms():
+    """Milliseconds this process's threads have been ready to run but waited for a core (Linux), else None."""
+    total = 0
+    try:
+        for task in os.listdir("/proc/self/task"):
+            try:
+                with open(f"/proc/self/task/{task}/schedstat") as f:
+                    total += int(f.read().split()[1])
+            except FileNotFoundError:  # a thread that just ended
+                pass
+    except OSError:
+        return None
+    return total / 1e6
+
+
 def _alternating(fn, threads: list, repeats: int) -> dict:
-    """{threads: (median ms, cores busy)} of fn, the thread counts taking turns (order reversed every round)."""
+    """{threads: (median ms, cores busy, ms waiting for a core per call or None)} of fn, the thread counts taking
+    turns (order reversed every round)."""
     from mlx3d.render.raster_cpu import set_num_threads
 
     wall = {t: [] for t in threads}
     cpu = {t: 0.0 for t in threads}
+    waited = {t: 0.0 for t in threads}
     for t in threads:  # warm-up at each thread count
         set_num_threads(t)
         fn()
     for r in range(repeats):
         for t in threads if r % 2 == 0 else threads[::-1]:
             set_num_threads(t)
-            c0, t0 = os.times(), time.perf_counter()
+            w0, c0, t0 = _waiting_ms(), os.times(), time.perf_counter()
             fn()
-            t1, c1 = time.perf_counter(), os.times()
+            t1, c1, w1 = time.perf_counter(), os.times(), _waiting_ms()
             wall[t].append(t1 - t0)
             cpu[t] += (c1.user - c0.user) + (c1.system - c0.system)
+            waited[t] = None if w0 is None or waited[t] is None else waited[t] + (w1 - w0)
     set_num_threads(None)
-    return {t: (1000.0 * sorted(w)[len(w) // 2], cpu[t] / sum(w)) for t, w in wall.items()}
+    return {t: (1000.0 * sorted(w)[len(w) // 2], cpu[t] / sum(w), None if waited[t] is None else waited[t] / repeats)
+            for t, w in wall.items()}
 
 
 def _setup(n: int, scale: float):
@@ -191,7 +213,7 @@ def _profile(trainer, camera, target, threads: list, repeats: int) -> tuple:
     }
     out = {t: {} for t in threads}
     for name, fn in stages.items():
-        for t, (ms, _) in _alternating(fn, threads, repeats).items():
+        for t, (ms, *_) in _alternating(fn, threads, repeats).items():
             out[t][name] = ms
     return out, int(bins.flatten_ids.size)
 
@@ -226,7 +248,7 @@ def child(args) -> None:
     results = []
     for t in threads:
         r = {"gaussians": len(trainer.model), "width": camera.width, "height": camera.height, "threads": t,
-             "ms_per_step": steps[t][0], "cores_busy": steps[t][1], "peak_mb": peak}
+             "ms_per_step": steps[t][0], "cores_busy": steps[t][1], "waiting_ms": steps[t][2], "peak_mb": peak}
         if stages:
             r["stages"] = dict(stages[t], **{"tile entries": entries})
             r["bandwidth_gbs"] = bandwidth
@@ -293,13 +315,14 @@ def main() -> None:
     lines = [f"Machine: {machine_line()}. Load: {load.line(cores, max(threads) + 0.5 * cores)}.", "",
              f"Median of {args.steps} steps per thread count after warm-up steps, vanilla, SH degree 3 active; the thread counts "
              "take turns step by step in one process per case (so peak RSS is the case's).", "",
-             "| Gaussians | image | threads | ms per step | speed-up vs 1 thread | cores busy | peak RSS (MB) |",
-             "|---:|---|---:|---:|---:|---:|---:|"]
+             "| Gaussians | image | threads | ms per step | speed-up vs 1 thread | cores busy | waiting for a core (ms/step) | peak RSS (MB) |",
+             "|---:|---|---:|---:|---:|---:|---:|---:|"]
     for r in results:
         one = next((x for x in results if x["gaussians"] == r["gaussians"] and x["width"] == r["width"] and x["threads"] == 1), None)
         speedup = f"{one['ms_per_step'] / r['ms_per_step']:.2f}" if one else ""
+        waiting = "" if r.get("waiting_ms") is None else f"{r['waiting_ms']:.1f}"
         lines.append(f"| {r['gaussians']:,} | {r['width']}x{r['height']} | {r['threads']} | {r['ms_per_step']:,.0f} | {speedup} | "
-                     f"{r['cores_busy']:.2f} | {r['peak_mb']:,.0f} |")
+                     f"{r['cores_busy']:.2f} | {waiting} | {r['peak_mb']:,.0f} |")
     if args.profile:
         for key in sorted({(r["gaussians"], r["width"], r["height"]) for r in results}):
             rows = [r for r in results if (r["gaussians"], r["width"], r["height"]) == key]

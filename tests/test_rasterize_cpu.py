@@ -377,6 +377,44 @@ def test_value_and_grad_and_clamp():
     assert g_opac[1] != 0 and (g_means[1] != 0).all() and (g_conics[1] != 0).all()
 
 
+@pytest.mark.parametrize("channels", [3, 5])
+def test_background_in_the_kernel_is_the_mlx_expression_bit_for_bit(channels):
+    # composite()'s CPU path adds the background in the kernel's threads: the same bits as the MLX
+    # expression accum + (1 - alpha) * bg on the plain output, forward and backward
+    width, height = 45, 33
+    scene = random_scene(11, 150, width, height, channels)
+    means, conics, feats, opac, offsets, ids = scene
+    offsets, ids = mx.array(offsets), mx.array(ids)
+    rng = np.random.default_rng(5)
+    bg = mx.array(rng.uniform(0, 1, channels).astype(np.float32))
+    cot_accum = mx.array(rng.normal(size=(height, width, channels)).astype(np.float32))
+    cot_alpha = mx.array(rng.normal(size=(height, width)).astype(np.float32))
+
+    def fused(m, c, fe, o, b):
+        accum, alpha, _ = rasterize_cpu(m, c, fe, o, offsets, ids, width, height, background=b)
+        return accum, alpha
+
+    def expression(m, c, fe, o, b):
+        accum, alpha, _ = rasterize_cpu(m, c, fe, o, offsets, ids, width, height)
+        return accum + (1.0 - alpha)[..., None] * b, alpha
+
+    primals = [mx.array(x) for x in (means, conics, feats, opac)] + [bg]
+    outs = {}
+    for name, f in (("fused", fused), ("expression", expression)):
+        value, grads = mx.vjp(f, primals, [cot_accum, cot_alpha])
+        outs[name] = [np.array(v) for v in value] + [np.array(g) for g in grads]
+    for got, want in zip(outs["fused"][:-1], outs["expression"][:-1]):
+        np.testing.assert_array_equal(got, want)
+    np.testing.assert_allclose(outs["fused"][-1], outs["expression"][-1], rtol=1e-6)  # d/dbackground: a sum over pixels
+    assert np.abs(outs["fused"][-1]).max() > 0
+    # a scalar background is every channel's
+    a, _, _ = rasterize_cpu(*primals[:4], offsets, ids, width, height, background=0.25)
+    b, _, _ = rasterize_cpu(*primals[:4], offsets, ids, width, height, background=mx.full((channels,), 0.25))
+    np.testing.assert_array_equal(np.array(a), np.array(b))
+    with pytest.raises(ValueError, match="background"):
+        rasterize_cpu(*primals[:4], offsets, ids, width, height, background=mx.zeros((channels + 1,)))
+
+
 def test_non_contributing_gaussians_get_exactly_zero_gradient():
     width, height = 24, 16
     rng = np.random.default_rng(5)

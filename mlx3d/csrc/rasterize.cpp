@@ -42,6 +42,7 @@
 // in chunks of consecutive tiles to bound the slot buffer (same summation
 // order).
 #include <nanobind/nanobind.h>
+#include <nanobind/stl/optional.h>
 #include <nanobind/stl/vector.h>
 
 #include <algorithm>
@@ -52,6 +53,7 @@
 #include <cstring>
 #include <limits>
 #include <memory>
+#include <optional>
 #include <sstream>
 #include <stdexcept>
 #include <string>
@@ -1494,6 +1496,30 @@ Inputs input_pointers(const std::vector<mx::array>& inputs) {
   return in;
 }
 
+// The background composite of the CPU path, on threads over the pixels: accum += (1 - alpha) bg (C
+// channels per pixel), and its gradient with respect to alpha, g_alpha - sum_c g_accum[c] bg[c] (the
+// channel sum in channel order). Each is the float32 arithmetic of the MLX expression it replaces,
+// accum + (1 - alpha)[..., None] * bg (mlx3d.render.rasterize.composite), so results keep their bits.
+void add_background(float* accum, const float* alpha, const float* bg, int C, int64_t pixels, int num_threads) {
+  parallel_blocks(pixels, num_threads, 16384, [=](int64_t lo, int64_t hi) {
+    for (int64_t p = lo; p < hi; ++p) {
+      const float t = 1.0f - alpha[p];
+      for (int c = 0; c < C; ++c) accum[p * C + c] = accum[p * C + c] + t * bg[c];
+    }
+  });
+}
+
+void background_alpha_grad(const float* g_accum, const float* g_alpha, const float* bg, int C, int64_t pixels,
+                           int num_threads, float* out) {
+  parallel_blocks(pixels, num_threads, 16384, [=](int64_t lo, int64_t hi) {
+    for (int64_t p = lo; p < hi; ++p) {
+      float along = 0.0f;
+      for (int c = 0; c < C; ++c) along = along + g_accum[p * C + c] * bg[c];
+      out[p] = g_alpha[p] + -along;
+    }
+  });
+}
+
 // ---------------------------------------------------------------- primitives
 
 class RasterizeBackward : public mx::Primitive {
@@ -1502,7 +1528,7 @@ class RasterizeBackward : public mx::Primitive {
       : mx::Primitive(stream), width_(width), height_(height), tile_(tile), num_threads_(num_threads) {}
 
   // inputs: means2d, conics, features, opacities, tile_offsets, flatten_ids,
-  //         last, final_T, dL/daccum (H,W,C), dL/dalpha (H,W)
+  //         last, final_T, dL/daccum (H,W,C), dL/dalpha (H,W)[, the forward's background (C,)]
   // outputs: dL/dmeans2d, dL/dconics, dL/dfeatures, dL/dopacities
   void eval_cpu(const std::vector<mx::array>& inputs, std::vector<mx::array>& outputs) override {
     auto& encoder = prepare_outputs(*this, inputs, outputs);
@@ -1510,7 +1536,17 @@ class RasterizeBackward : public mx::Primitive {
     const Geometry geo = make_geometry(width_, height_, tile_, inputs[0].shape(0), inputs[2].shape(1), inputs[5].size());
     BackwardIn bw{inputs[6].data<int32_t>(), inputs[7].data<float>(), inputs[8].data<float>(), inputs[9].data<float>()};
     GradOut out{outputs[0].data<float>(), outputs[1].data<float>(), outputs[2].data<float>(), outputs[3].data<float>()};
-    encoder.dispatch([in, geo, bw, out, threads = num_threads_]() { run_backward(in, geo, threads, bw, out); });
+    const float* bg = inputs.size() > 10 ? inputs[10].data<float>() : nullptr;
+    encoder.dispatch([in, geo, bw, out, bg, threads = num_threads_]() mutable {
+      std::vector<float> g_alpha;  // dL/dalpha with the background's term
+      if (bg) {
+        g_alpha.resize(static_cast<size_t>(geo.width) * geo.height);
+        background_alpha_grad(bw.g_accum, bw.g_alpha, bg, geo.channels, static_cast<int64_t>(g_alpha.size()), threads,
+                              g_alpha.data());
+        bw.g_alpha = g_alpha.data();
+      }
+      run_backward(in, geo, threads, bw, out);
+    });
   }
 
   void eval_gpu(const std::vector<mx::array>&, std::vector<mx::array>&) override {
@@ -1548,7 +1584,8 @@ class RasterizeBackward : public mx::Primitive {
 };
 
 // With `surface`, the forward-only variant that composites a surface layer
-// (extra inputs: depths (N,), surface colour (H,W,C), alpha (H,W), depth (H,W)).
+// (extra inputs: depths (N,), surface colour (H,W,C), alpha (H,W), depth (H,W)). Otherwise an optional
+// seventh input, the background (C,), is composited behind accum (add_background).
 class RasterizeForward : public mx::Primitive {
  public:
   RasterizeForward(mx::Stream stream, int width, int height, int tile, int num_threads, bool surface = false)
@@ -1559,11 +1596,13 @@ class RasterizeForward : public mx::Primitive {
     Inputs in = input_pointers(inputs);
     if (surface_)
       in.surface = {inputs[6].data<float>(), inputs[7].data<float>(), inputs[8].data<float>(), inputs[9].data<float>()};
+    const float* bg = !surface_ && inputs.size() > 6 ? inputs[6].data<float>() : nullptr;
     const Geometry geo = make_geometry(width_, height_, tile_, inputs[0].shape(0), inputs[2].shape(1), inputs[5].size());
     ForwardOut out{outputs[0].data<float>(), outputs[1].data<float>(), outputs[2].data<int32_t>(),
                    outputs[3].data<float>()};
-    encoder.dispatch([in, geo, out, threads = num_threads_, surface = surface_]() {
+    encoder.dispatch([in, geo, out, bg, threads = num_threads_, surface = surface_]() {
       run_forward(in, geo, threads, out, surface);
+      if (bg) add_background(out.accum, out.alpha, bg, geo.channels, int64_t(geo.width) * geo.height, threads);
     });
   }
 
@@ -1573,7 +1612,8 @@ class RasterizeForward : public mx::Primitive {
 
   // Cotangents: one per output (accum, alpha, last, final_T); those of `last`
   // (integer) and `final_T` (internal) are ignored. tile_offsets and
-  // flatten_ids are integer inputs and get zero cotangents.
+  // flatten_ids are integer inputs and get zero cotangents; the background's
+  // (when asked for) comes from an MLX expression.
   std::vector<mx::array> vjp(const std::vector<mx::array>& primals, const std::vector<mx::array>& cotangents,
                              const std::vector<int>& argnums, const std::vector<mx::array>& outputs) override {
     if (surface_)
@@ -1588,13 +1628,23 @@ class RasterizeForward : public mx::Primitive {
       auto prep = [&](const mx::array& x) { return mx::contiguous(mx::astype(x, mx::float32, s), false, s); };
       std::vector<mx::array> inputs = {primals[0], primals[1], primals[2],  primals[3],       primals[4],
                                        primals[5], outputs[2], outputs[3], prep(cotangents[0]), prep(cotangents[1])};
+      if (primals.size() > 6) inputs.push_back(primals[6]);  // the background
       grads = mx::array::make_arrays(
           {primals[0].shape(), primals[1].shape(), primals[2].shape(), primals[3].shape()},
           {mx::float32, mx::float32, mx::float32, mx::float32},
           std::make_shared<RasterizeBackward>(s, width_, height_, tile_, num_threads_), inputs);
     }
     std::vector<mx::array> result;
-    for (int a : argnums) result.push_back(a < 4 ? grads[a] : mx::zeros_like(primals[a], s));
+    for (int a : argnums) {
+      if (a < 4) {
+        result.push_back(grads[a]);
+      } else if (a == 6) {  // the background: the sum over pixels of dL/daccum (1 - alpha)
+        const mx::array uncovered = mx::expand_dims(mx::subtract(mx::array(1.0f), outputs[1], s), -1, s);
+        result.push_back(mx::sum(mx::multiply(cotangents[0], uncovered, s), std::vector<int>{0, 1}, false, s));
+      } else {
+        result.push_back(mx::zeros_like(primals[a], s));
+      }
+    }
     return result;
   }
 
@@ -1672,11 +1722,16 @@ std::vector<mx::array> make_forward(const std::vector<const mx::array*>& args, i
 std::vector<mx::array> rasterize_forward(const mx::array& means2d, const mx::array& conics, const mx::array& features,
                                          const mx::array& opacities, const mx::array& tile_offsets,
                                          const mx::array& flatten_ids, int width, int height, int tile_size,
-                                         int num_threads) {
+                                         int num_threads, std::optional<mx::array> background) {
   check_forward_inputs(means2d, conics, features, opacities, tile_offsets, flatten_ids, width, height, tile_size,
                        num_threads);
-  return make_forward({&means2d, &conics, &features, &opacities, &tile_offsets, &flatten_ids}, width, height,
-                      tile_size, num_threads, false);
+  std::vector<const mx::array*> args = {&means2d, &conics, &features, &opacities, &tile_offsets, &flatten_ids};
+  if (background) {
+    check(background->ndim() == 1 && background->shape(0) == features.shape(1) && background->dtype() == mx::float32,
+          "background must be float32 (C,) with C = " + std::to_string(features.shape(1)) + ", got " + shape_str(*background));
+    args.push_back(&*background);
+  }
+  return make_forward(args, width, height, tile_size, num_threads, false);
 }
 
 // The surface variant's op (forward-only): the plain inputs, then the
@@ -1714,9 +1769,11 @@ void bind_rasterize(nb::module_& m) {
         "MLX3D_RASTER_ISA=baseline forces the baseline variant.");
   m.def("rasterize_forward", &rasterize_forward, "means2d"_a, "conics"_a, "features"_a, "opacities"_a,
         "tile_offsets"_a, "flatten_ids"_a, "width"_a, "height"_a, "tile_size"_a = 16, "num_threads"_a = 0,
+        "background"_a = nb::none(),
         "3DGS tile rasterizer (MLX primitive, CPU, threaded over tiles; differentiable w.r.t. the first four\n"
-        "inputs). float32 means2d (N,2), conics (N,3), features (N,C), opacities (N,); int32 tile_offsets\n"
-        "(tiles+1,), flatten_ids (M,). Returns [accum (H,W,C), alpha (H,W), last (H,W) int32, final_T (H,W)].\n"
+        "inputs and the background). float32 means2d (N,2), conics (N,3), features (N,C), opacities (N,); int32\n"
+        "tile_offsets (tiles+1,), flatten_ids (M,); background: None or float32 (C,), composited behind accum as\n"
+        "(1 - alpha) * background. Returns [accum (H,W,C), alpha (H,W), last (H,W) int32, final_T (H,W)].\n"
         "Use mlx3d.render.raster_cpu.rasterize_cpu, which validates and casts its inputs.");
   m.def("rasterize_forward_surface", &rasterize_forward_surface, "means2d"_a, "conics"_a, "features"_a, "opacities"_a,
         "tile_offsets"_a, "flatten_ids"_a, "depths"_a, "surface_color"_a, "surface_alpha"_a, "surface_depth"_a,

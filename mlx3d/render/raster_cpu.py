@@ -170,6 +170,9 @@ def rasterize_cpu(
     height: int,
     tile_size: int = 16,
     num_threads: int | None = None,
+    *,
+    background=None,
+    check_indices: bool = True,
 ):
     """Composite binned Gaussians on the CPU.
 
@@ -183,24 +186,34 @@ def rasterize_cpu(
         width, height, tile_size: the image and its tiles.
         num_threads: None for :func:`get_num_threads`, 0 for all hardware
             threads, else that many threads.
+        background: None, or (C,) composited behind the Gaussians as
+            ``accum + (1 - alpha) * background`` inside the kernel's threads
+            (differentiable with respect to it too).
+        check_indices: check the integer inputs by value (see
+            :func:`prepare_inputs`); the renderer skips it for its own binning.
 
     Returns:
-        (accum (H, W, C) float32 without background, alpha (H, W) float32 =
-        1 - final transmittance, last (H, W) int32 = 1 + position of the last
-        contributing entry in the pixel's tile range, 0 if none), lazily
-        evaluated mx.arrays. Float inputs are cast to float32, ids to int32.
+        (accum (H, W, C) float32, with the background when given, alpha (H, W)
+        float32 = 1 - final transmittance, last (H, W) int32 = 1 + position of
+        the last contributing entry in the pixel's tile range, 0 if none),
+        lazily evaluated mx.arrays. Float inputs are cast to float32, ids to int32.
     """
-    return _forward("rasterize_forward", (means2d, conics, features, opacities, tile_offsets, flatten_ids, width, height, tile_size), (), num_threads)
+    return _forward("rasterize_forward", (means2d, conics, features, opacities, tile_offsets, flatten_ids, width, height, tile_size), (), num_threads,
+                    check_indices, background)
 
 
-def _forward(op: str, inputs: tuple, surface: tuple, num_threads):
+def _forward(op: str, inputs: tuple, surface: tuple, num_threads, check_indices: bool = True, background=None):
     """Run the native forward ``op`` on the checked ``inputs`` (rasterize_cpu's first nine arguments)
-    with the ``surface`` arrays after the ids; returns (accum, alpha, last)."""
-    *arrays, width, height, tile_size = prepare_inputs(*inputs)
+    with the ``surface`` arrays after the ids (and a scalar or (C,) background); returns (accum, alpha, last)."""
+    *arrays, width, height, tile_size = prepare_inputs(*inputs, check_indices=check_indices)
     threads = get_num_threads() if num_threads is None else _positive_int(num_threads, "num_threads", minimum=0)
+    extra = ()
+    if background is not None:
+        bg = _float32(background, "background").reshape(-1)
+        extra = (mx.broadcast_to(bg, (arrays[2].shape[1],)) if bg.size == 1 else bg,)
     from mlx3d import native
 
-    accum, alpha, last, _final_t = getattr(native.core(), op)(*arrays, *surface, width, height, tile_size, threads)
+    accum, alpha, last, _final_t = getattr(native.core(), op)(*arrays, *surface, width, height, tile_size, threads, *extra)
     return accum, alpha, last
 
 

@@ -44,10 +44,10 @@ def composite(means2d, conics, features, opacities, bins: Bins, width: int, heig
         from .raster_reference import rasterize_reference
 
         accum, alpha, last = rasterize_reference(*args)
-    elif backend == "cpu":
+    elif backend == "cpu":  # the background composited in the kernel's threads, the integer inputs from our binning
         from .raster_cpu import rasterize_cpu
 
-        accum, alpha, last = rasterize_cpu(*args)
+        return rasterize_cpu(*args, background=background, check_indices=False)
     else:
         from .raster_metal import rasterize_metal
 
