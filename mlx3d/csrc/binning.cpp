@@ -117,9 +117,10 @@ inline void for_each_tile(const Rect& r, int32_t tiles_x, Fn&& fn) {
 }
 
 // Work layout (threaded; the result does not depend on the thread count): the depth-sorted Gaussians are cut
-// into one contiguous chunk per thread, with about equal entries (balanced_chunks). Each chunk counts its entries per tile; a tile's bucket then holds
-// chunk 0's entries, then chunk 1's, ..., so chunk c starts writing tile t at offsets[t] + the counts of
-// chunks before c, and every thread fills its own part of each bucket in sorted order.
+// into one contiguous chunk per thread, with about equal entries (balanced_chunks). Each chunk counts its
+// entries per tile; a tile's bucket then holds chunk 0's entries, then chunk 1's, ..., so chunk c starts
+// writing tile t at offsets[t] + the counts of chunks before c, and every thread fills its own part of each
+// bucket in sorted order.
 // radii (N,), with conics (N,3) and opacities (N,) or neither: the half-extents above.
 ExtentInputs extent_inputs(const Vec1& radii, const std::optional<Vec3>& conics, const std::optional<Vec1>& opacities, int64_t n) {
   if (static_cast<int64_t>(radii.shape(0)) != n) throw nb::value_error("bin_tiles: radii must have one entry per Gaussian");
@@ -132,7 +133,7 @@ ExtentInputs extent_inputs(const Vec1& radii, const std::optional<Vec3>& conics,
 // Sorts keys (depth key << 32 | index, listed in index order) into the order of the unique 64-bit keys: a
 // stable LSD radix sort on the depth keys, 8 bits per pass (a pass whose digit all keys share is skipped),
 // each pass threaded: every chunk counts its digits, then writes its keys in order after the earlier
-// chunks' keys of the same digit. std::sort of the 64-bit keys plus merging the chunks took 4x the time.
+// chunks' keys of the same digit (no merge of sorted chunks on one thread).
 void sort_by_depth(std::vector<uint64_t>& keys, int chunks, int64_t min_per_thread) {
   const int64_t k = static_cast<int64_t>(keys.size());
   const RangeSplit split = split_ranges(k, chunks, min_per_thread);
