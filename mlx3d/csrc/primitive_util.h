@@ -250,8 +250,8 @@ void parallel_ranges(int64_t n, int num_threads, int64_t min_per_thread, const F
 // (as parallel_ranges) a block at a time, then helps with the others' remaining blocks. With fixed
 // ranges alone, a thread that started late (a pool worker woken from its sleep) or got the costlier
 // elements (culled Gaussians cost little) left the other core idle at the end of each pass; blocks dealt
-// out in turn from one counter instead made both threads fault in the pages of the same fresh output
-// together, which measured slower. Blocks hold a multiple of 64 elements, about 8 per range.
+// out in turn from one counter instead measured slower (both threads then touch the pages of the same
+// fresh output together). Blocks hold a multiple of 64 elements, about 8 per range.
 template <typename Fn>
 void parallel_blocks(int64_t n, int num_threads, int64_t min_per_thread, const Fn& fn) {
   const RangeSplit split = split_ranges(n, num_threads, min_per_thread);
