@@ -13,7 +13,7 @@ from types import ModuleType
 
 from mlx3d.errors import ExtensionBuildError
 
-__all__ = ["core", "available", "BUILD_HINT"]
+__all__ = ["core", "available", "host_array", "BUILD_HINT"]
 
 BUILD_HINT = (
     "Build it from the repository root: install the build requirements "
@@ -70,3 +70,15 @@ def available() -> bool:
     except ExtensionBuildError:
         return False
     return True
+
+
+def host_array(a, dtype):
+    """``a`` as a C-contiguous numpy array of ``dtype``, for the native functions that take numpy arrays.
+
+    An MLX array is evaluated (outside any gradient) and its own memory used when it already has that
+    dtype and layout; anything else is converted (a copy).
+    """
+    import mlx.core as mx
+    import numpy as np
+
+    return np.ascontiguousarray(np.asarray(mx.stop_gradient(a) if isinstance(a, mx.array) else a), dtype=dtype)

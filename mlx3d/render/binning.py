@@ -44,10 +44,6 @@ class Bins(NamedTuple):
     tile_size: int
 
 
-def _np(a, dtype):
-    return np.ascontiguousarray(np.asarray(mx.stop_gradient(a) if isinstance(a, mx.array) else a), dtype=dtype)
-
-
 def tile_extents(radii, conics=None, opacities=None) -> np.ndarray:
     """(N,2) float32 half-extents in pixels used for binning (see the module docstring)."""
     return native.core().tile_extents(*_extent_args(radii, conics, opacities))
@@ -55,10 +51,10 @@ def tile_extents(radii, conics=None, opacities=None) -> np.ndarray:
 
 def _extent_args(radii, conics, opacities) -> tuple:
     """The C++ binning's extent inputs: radii, and conics and opacities only when both are given."""
-    r = _np(radii, np.float32).reshape(-1)
+    r = native.host_array(radii, np.float32).reshape(-1)
     if conics is None or opacities is None:
         return r, None, None
-    return r, _np(conics, np.float32).reshape(-1, 3), _np(opacities, np.float32).reshape(-1)
+    return r, native.host_array(conics, np.float32).reshape(-1, 3), native.host_array(opacities, np.float32).reshape(-1)
 
 
 def bin_tiles(means2d, radii, depths, width: int, height: int, tile_size: int = TILE_SIZE, conics=None, opacities=None) -> Bins:
@@ -71,8 +67,9 @@ def bin_tiles(means2d, radii, depths, width: int, height: int, tile_size: int = 
     from .raster_cpu import get_num_threads  # the CPU kernels' thread setting; the result is the same for any
 
     r, con, opac = _extent_args(radii, conics, opacities)
-    offsets, ids = native.core().bin_tiles(_np(means2d, np.float32).reshape(-1, 2), r, _np(depths, np.float32).reshape(-1), int(width),
-                                           int(height), tile_size, get_num_threads(), con, opac)
+    means = native.host_array(means2d, np.float32).reshape(-1, 2)
+    offsets, ids = native.core().bin_tiles(means, r, native.host_array(depths, np.float32).reshape(-1), int(width), int(height), tile_size,
+                                           get_num_threads(), con, opac)
     return Bins(offsets, ids, tiles_x, tiles_y, tile_size)
 
 

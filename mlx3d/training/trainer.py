@@ -388,14 +388,12 @@ class GaussianTrainer:
 
         from ..render.raster_cpu import get_num_threads
 
-        def arg(a, dtype):  # the evaluated MLX array's memory, not a copy
-            return np.ascontiguousarray(np.asarray(a), dtype=dtype)
-
         # Threaded and in place (mlx3d/csrc/screen_statistics.cpp): the float64 operations of numpy's
         # grad_accum += np.where(visible, sqrt(gx * gx + gy * gy), 0) with (gx, gy) = grad2d * (W/2, H/2),
         # grad_count += visible and max_radii = np.maximum(max_radii, radii), bit for bit.
         native.core().add_screen_statistics(
-            arg(visible, np.bool_), arg(grad2d, np.float32), arg(radii, np.int32), 0.5 * camera.width, 0.5 * camera.height,
+            native.host_array(visible, np.bool_), native.host_array(grad2d, np.float32), native.host_array(radii, np.int32),
+            0.5 * camera.width, 0.5 * camera.height,
             self.grad_accum, self.grad_count, self.max_radii, get_num_threads())
 
     def _apply_event(self, event: str):
