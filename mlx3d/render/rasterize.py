@@ -1,8 +1,9 @@
 """Compositing binned 2D Gaussians: the backend dispatch and the public rasterize functions.
 
-``composite`` runs one of the rasterizers ('cpu': the C++ MLX primitive,
-'metal': Apple GPUs, 'reference': pure MLX, the test oracle; 'auto' takes
-Metal when available) on ``Bins``; ``composite_features`` adds the per-channel
+``composite`` runs one of the rasterizers ('cpu': the C++ MLX primitive of
+``mlx3d._core``, 'metal': Apple GPUs, 'mlx': tiles composited with MLX
+operations, which runs anywhere MLX does, 'reference': pure MLX, the test
+oracle; 'auto' as ``resolve_backend``) on ``Bins``; ``composite_features`` adds the per-channel
 background, alpha normalisation and channel chunking. The public
 ``rasterize_features``, ``rasterize_depth`` and ``rasterize`` take the tuple of
 ``bin_gaussians`` (``sorted_ids, tile_ranges, tiles_x, tiles_y``) and return
@@ -16,18 +17,27 @@ import mlx.core as mx
 
 from .binning import TILE_SIZE, Bins, bins_from_ranges
 
-BACKENDS = ("auto", "cpu", "metal", "reference")
+BACKENDS = ("auto", "cpu", "metal", "mlx", "reference")
 CHUNK_SIZE = 16  # feature channels composited per pass in ``composite_features``
 
 
 def resolve_backend(backend: str) -> str:
-    """'auto' -> 'metal' on Apple GPUs, else 'cpu' (the C++ kernel)."""
+    """'auto' -> 'metal' on Apple GPUs, else 'cpu' where the compiled module ``mlx3d._core`` loads, else 'mlx'.
+
+    The backend names every stage of a render and a training step: 'cpu' runs
+    the C++ kernels of ``mlx3d._core`` (and raises ``ExtensionBuildError``
+    where it is missing); every other backend runs MLX operations, with the
+    Metal kernels for the rasterizer on 'metal'.
+    """
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     if backend == "auto":
+        from .. import native
         from .raster_metal import metal_available
 
-        return "metal" if metal_available() else "cpu"
+        if metal_available():
+            return "metal"
+        return "cpu" if native.available() else "mlx"
     return backend
 
 
@@ -48,6 +58,10 @@ def composite(means2d, conics, features, opacities, bins: Bins, width: int, heig
         from .raster_cpu import rasterize_cpu
 
         return rasterize_cpu(*args, background=background, check_indices=False)
+    elif backend == "mlx":
+        from .raster_mlx import rasterize_mlx
+
+        accum, alpha, last = rasterize_mlx(*args, check_indices=False)
     else:
         from .raster_metal import rasterize_metal
 

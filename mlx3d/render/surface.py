@@ -19,10 +19,11 @@ Two paths, visible in the render's stages:
 - ``surface_behind``: no finite depth anywhere, so the surface is a
   background image: the plain rasterizer (any backend), then
   ``image = accum + T * (color + (1 - alpha) * background)``;
-- ``+surface_depth_test``: the CPU kernel with the depth test
-  (``raster_cpu.rasterize_cpu_surface``); backend 'metal' has none and runs
-  this composite on the CPU (stage ``surface_cpu_fallback``); backend
-  'reference' runs the pure-MLX version in ``raster_reference``.
+- ``+surface_depth_test``: the rasterizer with the depth test: the CPU
+  kernel (``raster_cpu.rasterize_cpu_surface``), the Metal kernel
+  (``raster_metal.rasterize_metal_surface``), the MLX tiles
+  (``raster_mlx.rasterize_mlx_surface``) or, for backend 'reference', the
+  pure-MLX oracle in ``raster_reference``.
 
 Forward-only: differentiating a depth-tested composite raises.
 """
@@ -102,20 +103,23 @@ def surface_stages(mode: str | None, backend: str, raster_stage: str) -> tuple:
         return (raster_stage,)
     if mode == BEHIND:
         return (raster_stage, "surface_behind")
-    fallback = ("surface_cpu_fallback",) if backend == "metal" else ()
-    return fallback + (raster_stage + "+surface_depth_test",)
+    return (raster_stage + "+surface_depth_test",)
 
 
 def _depth_tested(means2d, conics, features, opacities, depths, bins: Bins, width: int, height: int, surface: Surface, backend: str):
-    """(accum, alpha, last) of the depth-tested composite, on the CPU kernel or the pure-MLX reference."""
+    """(accum, alpha, last) of the depth-tested composite on ``backend``'s rasterizer."""
     args = (means2d, conics, features, opacities, bins.tile_offsets, bins.flatten_ids)
     if backend == "reference":
         from .raster_reference import rasterize_reference
 
         return rasterize_reference(*args, width, height, bins.tile_size, depths=depths, surface=surface)
-    from .raster_cpu import rasterize_cpu_surface
-
-    return rasterize_cpu_surface(*args, depths, surface.color, surface.alpha, surface.depth, width, height, bins.tile_size)
+    if backend == "cpu":
+        from .raster_cpu import rasterize_cpu_surface as rasterize_surface
+    elif backend == "metal":
+        from .raster_metal import rasterize_metal_surface as rasterize_surface
+    else:
+        from .raster_mlx import rasterize_mlx_surface as rasterize_surface
+    return rasterize_surface(*args, depths, surface.color, surface.alpha, surface.depth, width, height, bins.tile_size)
 
 
 def composite_surface(
@@ -125,7 +129,7 @@ def composite_surface(
     """Composite Gaussians and ``surface`` (``mode`` from ``surface_mode``), then ``background`` (C,) or None.
 
     depths (N,): the Gaussians' camera z (the binning's sort key); backend: a
-    resolved backend ('cpu', 'metal', 'reference'). Returns ``(image (H,W,C),
+    resolved backend ('cpu', 'metal', 'mlx', 'reference'). Returns ``(image (H,W,C),
     alpha (H,W) = 1 - final T including the surface, last (H,W) int32)``.
     """
     if mode == BEHIND:

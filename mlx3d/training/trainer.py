@@ -33,6 +33,7 @@ from .density import add_gaussians_mcmc, densify_and_prune, relocate_dead, reset
 from .geometry import DepthUnprojector, depth_variance_loss, normal_consistency_loss
 from .metrics import photometric_loss, psnr
 from .plan import step_plan
+from .statistics import ScreenStatistics
 
 
 class TrainingError(Mlx3dError, RuntimeError):
@@ -249,10 +250,12 @@ class GaussianTrainer:
         }
 
     def _reset_stats(self):
-        n = len(self.model)
-        self.grad_accum = np.zeros(n)
-        self.grad_count = np.zeros(n)
-        self.max_radii = np.zeros(n)
+        self.statistics = ScreenStatistics(len(self.model))
+
+    # the density statistics as float64 (N,) numpy arrays (see mlx3d.training.statistics)
+    grad_accum = property(lambda self: self.statistics.arrays()[0], lambda self, v: self.statistics.set(0, v))
+    grad_count = property(lambda self: self.statistics.arrays()[1], lambda self, v: self.statistics.set(1, v))
+    max_radii = property(lambda self: self.statistics.arrays()[2], lambda self, v: self.statistics.set(2, v))
 
     def background_colour(self, spec=None) -> tuple:
         """The (r,g,b) background for the next step: ``spec`` or the config's ``background``
@@ -359,7 +362,7 @@ class GaussianTrainer:
         self.step_count += 1
 
         if statistics:
-            self.add_screen_statistics(camera, out["visible"], grad2d, out["radii"])
+            self.add_screen_statistics(camera, out["visible"], grad2d, out["radii"], r.backend)
             ran.append("screen_statistics")
 
         info = {"step": self.step_count, "loss": loss_value, "psnr": float(quality)}
@@ -381,20 +384,12 @@ class GaussianTrainer:
         })
         return info
 
-    def add_screen_statistics(self, camera, visible, grad2d, radii) -> None:
+    def add_screen_statistics(self, camera, visible, grad2d, radii, backend: str = "auto") -> None:
         """Adds one view to the density statistics: visible (N,) bool, grad2d (N,2) dL/d(means2d) in
         pixels, radii (N,). The screen-space gradient is taken in NDC units (as 3DGS's threshold expects)."""
-        from mlx3d import native
+        from ..render.rasterize import resolve_backend
 
-        from ..render.raster_cpu import get_num_threads
-
-        # Threaded and in place (mlx3d/csrc/screen_statistics.cpp): the float64 operations of numpy's
-        # grad_accum += np.where(visible, sqrt(gx * gx + gy * gy), 0) with (gx, gy) = grad2d * (W/2, H/2),
-        # grad_count += visible and max_radii = np.maximum(max_radii, radii), bit for bit.
-        native.core().add_screen_statistics(
-            native.host_array(visible, np.bool_), native.host_array(grad2d, np.float32), native.host_array(radii, np.int32),
-            0.5 * camera.width, 0.5 * camera.height,
-            self.grad_accum, self.grad_count, self.max_radii, get_num_threads())
+        self.statistics.add(camera, visible, grad2d, radii, resolve_backend(backend))
 
     def _apply_event(self, event: str):
         c = self.config

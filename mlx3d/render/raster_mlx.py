@@ -1,0 +1,387 @@
+"""The tile rasterizer in MLX operations: backend 'mlx', for wherever the compiled module is missing.
+
+Same inputs, outputs and rules as the C++ and Metal rasterizers
+(``raster_math.h``; README, "Rasterizer math"), forward and backward, and the
+forward-only composite with a surface layer (``mlx3d.render.surface``). It
+runs on any MLX device and needs nothing but MLX and numpy.
+
+Work layout. The tiles' pixels and their entries are processed in *depth
+batches*: batch b takes entries [s, s + B) of every active tile's range (all
+active tiles are at the same position s) and evaluates them at the tile's
+pixels as (tiles, pixels, B) arrays. Inside a batch the front-to-back
+recurrence is a cumulative product: with α_k zero for skipped entries,
+``T_after_k = T_in · Π_{j≤k} (1 - α_j)``; an entry contributes iff it is kept,
+its pixel had not stopped, and ``T_after_k >= 1e-4``. T only decreases, so the
+contributors are a prefix of the kept entries and ``T_in · Π_{j<k}`` is
+exactly their transmittance (the rules of the sequential loop; float32
+products are rounded in another order, so values agree to float precision,
+not bitwise). A pixel stops at its first kept entry that would take T below
+1e-4, as in the kernels. After each batch a tile leaves the active set when
+its range is used up or all its pixels have stopped (one small read of the
+stop flags per batch), and B grows as tiles leave, so that every batch holds
+about ``BATCH_ELEMENTS`` (pixel, entry) pairs: memory stays bounded and the
+work is about the sum over tiles of pixels x entries visited.
+
+The backward pass (an ``mx.custom_function`` vjp) replays the same batches
+(the same schedule and arithmetic, so the same contributors) and uses, per
+pixel, the colour behind each entry dotted with dL/daccum as the total minus a
+running prefix: ``dL/dα_k = T_before·(f_k·g) - (S_k·g - dL/dalpha·T_final)/(1 - α_k)``
+with ``S_k·g = accum·g - Σ_{j≤k} w_j (f_j·g)``; the per-entry gradients are
+summed over the tile's pixels and added to their Gaussians once at the end.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import mlx.core as mx
+import numpy as np
+
+from .raster_cpu import prepare_inputs
+
+__all__ = ["rasterize_mlx", "rasterize_mlx_surface", "BATCH_ELEMENTS"]
+
+ALPHA_MAX = 0.99
+ALPHA_MIN = 1.0 / 255.0
+T_MIN = 1e-4
+BATCH_ELEMENTS = 1 << 21  # (pixel, entry) pairs per batch: about 8 MB per float32 temporary
+
+
+@dataclass
+class _Tiles:
+    """The binning on the host and the pixel layout: tiles of P = tile² pixels, row-major inside a tile."""
+
+    offsets: np.ndarray  # (tiles + 1,) int64
+    counts: np.ndarray  # (tiles,) int64
+    tile: int
+    tiles_x: int
+    tiles_y: int
+
+    @classmethod
+    def of(cls, tile_offsets, width: int, height: int, tile: int) -> "_Tiles":
+        offsets = np.asarray(tile_offsets).astype(np.int64)
+        return cls(offsets, np.diff(offsets), tile, -(-width // tile), -(-height // tile))
+
+    @property
+    def pixels(self) -> int:
+        return self.tile * self.tile
+
+    def centres(self, tiles: np.ndarray) -> tuple:
+        """Pixel centres (x, y) of ``tiles``, each (n, P) float32."""
+        local = np.arange(self.pixels)
+        x = (tiles % self.tiles_x)[:, None] * self.tile + (local % self.tile)[None] + 0.5
+        y = (tiles // self.tiles_x)[:, None] * self.tile + (local // self.tile)[None] + 0.5
+        return mx.array(x.astype(np.float32)), mx.array(y.astype(np.float32))
+
+    def to_image(self, per_tile: mx.array, width: int, height: int) -> mx.array:
+        """(tiles, P, ...) in tile order -> (H, W, ...)."""
+        rest = tuple(per_tile.shape[2:])
+        t = self.tile
+        img = per_tile.reshape(self.tiles_y, self.tiles_x, t, t, *rest).swapaxes(1, 2)
+        return img.reshape(self.tiles_y * t, self.tiles_x * t, *rest)[:height, :width]
+
+    def from_image(self, image: mx.array) -> mx.array:
+        """(H, W, ...) -> (tiles, P, ...), zero-padded to whole tiles."""
+        rest = tuple(image.shape[2:])
+        t = self.tile
+        pad = [(0, self.tiles_y * t - image.shape[0]), (0, self.tiles_x * t - image.shape[1])] + [(0, 0)] * len(rest)
+        img = mx.pad(image, pad).reshape(self.tiles_y, t, self.tiles_x, t, *rest).swapaxes(1, 2)
+        return img.reshape(self.tiles_y * self.tiles_x, t * t, *rest)
+
+
+@dataclass
+class _Batch:
+    """Entries [start, start + size) of the ranges of ``tiles`` (n,), with the Gaussians' values per entry."""
+
+    tiles: np.ndarray  # (n,) tile ids, in the order of the carried per-tile state
+    start: int
+    size: int
+    ids: mx.array  # (n, B) Gaussian index (0 where invalid)
+    valid: mx.array  # (n, 1, B) bool: the entry exists and its id is in [0, N)
+    exists: mx.array  # (n, 1, B) bool: the entry exists (its tile's range is not used up)
+    position: mx.array  # (B,) int32: 1 + the entries' position in their tile's range
+
+
+def _batch(tiles: np.ndarray, start: int, size: int, grid: _Tiles, flatten_ids: mx.array, n: int) -> _Batch:
+    pos = start + np.arange(size)
+    exists = pos[None] < grid.counts[tiles][:, None]
+    entry = np.where(exists, grid.offsets[tiles][:, None] + pos[None], 0)
+    ids = flatten_ids[mx.array(entry.reshape(-1).astype(np.int32))].reshape(entry.shape) if flatten_ids.size else mx.zeros(entry.shape, mx.int32)
+    exists = mx.array(exists)
+    valid = exists & (ids >= 0) & (ids < n)
+    return _Batch(tiles, start, size, mx.where(valid, ids, 0), valid[:, None, :], exists[:, None, :], mx.array((pos + 1).astype(np.int32)))
+
+
+class _Schedule:
+    """The depth batches of one rasterization (see the module docstring), identical in both passes.
+
+    ``next()`` gives the next ``_Batch`` (None when every tile has left); ``advance(batch, stopped)``
+    moves past it given its (n, P) stop flags and returns the (n,) mask of its tiles that stay active.
+    """
+
+    def __init__(self, grid: _Tiles, flatten_ids: mx.array, n: int, batch_elements: int):
+        self.grid, self.ids, self.n, self.budget = grid, flatten_ids, n, int(batch_elements)
+        self.tiles = np.flatnonzero(grid.counts > 0)
+        self.start = 0
+
+    def next(self) -> _Batch | None:
+        if self.tiles.size == 0:
+            return None
+        remaining = int(self.grid.counts[self.tiles].max()) - self.start
+        size = int(min(remaining, max(1, self.budget // (self.tiles.size * self.grid.pixels))))
+        return _batch(self.tiles, self.start, size, self.grid, self.ids, self.n)
+
+    def advance(self, batch: _Batch, stopped: mx.array) -> np.ndarray:
+        self.start += batch.size
+        stay = (self.grid.counts[batch.tiles] > self.start) & ~np.asarray(mx.all(stopped, axis=1))
+        self.tiles = batch.tiles[stay]
+        return stay
+
+
+class _State:
+    """Per-pixel fields of the active tiles, (n, P, ...) rows in the schedule's tile order.
+
+    ``keep(stay)`` sets the rows that leave aside; ``image(name, initial)`` assembles a field over
+    every tile, ``initial`` (tiles, P, ...) standing where a tile was never active.
+    """
+
+    def __init__(self, grid: _Tiles, tiles: np.ndarray, fields: dict):
+        self.grid, self.tiles = grid, tiles
+        self.active = fields
+        self.left_tiles: list = []
+        self.left: dict = {k: [] for k in fields}
+
+    def keep(self, stay: np.ndarray) -> None:
+        if stay.all():
+            return
+        leave, rows = mx.array(np.flatnonzero(~stay)), mx.array(np.flatnonzero(stay))
+        self.left_tiles.append(self.tiles[~stay])
+        self.tiles = self.tiles[stay]
+        for k, v in self.active.items():
+            self.left[k].append(v[leave])
+            self.active[k] = v[rows]
+
+    def image(self, name: str, initial: mx.array, width: int, height: int) -> mx.array:
+        if self.left_tiles:
+            initial[mx.array(np.concatenate(self.left_tiles))] = mx.concatenate(self.left[name], axis=0)
+        return self.grid.to_image(initial, width, height)
+
+
+def _gather(batch: _Batch, means2d, conics, opacities) -> tuple:
+    """The batch's Gaussians' mean x, y, conic a, b, c and opacity, each (n, 1, B)."""
+    g = batch.ids
+    return tuple(v[g][:, None] for v in (means2d[:, 0], means2d[:, 1], conics[:, 0], conics[:, 1], conics[:, 2], opacities))
+
+
+def _evaluate(batch: _Batch, px, py, gaussians: tuple):
+    """raster_math.h on (n, P, B): (dx, dy, exp(power), alpha (0 where skipped), kept) of every (pixel, entry)."""
+    mean_x, mean_y, ca, cb, cc, o = gaussians
+    dx = mean_x - px[..., None]
+    dy = mean_y - py[..., None]
+    power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
+    e = mx.exp(mx.minimum(power, 0.0))
+    alpha = mx.minimum(o * e, ALPHA_MAX)
+    keep = batch.valid & (power <= 0.0) & (alpha >= ALPHA_MIN)  # NaN fails every comparison: skipped
+    return dx, dy, e, mx.where(keep, alpha, 0.0), keep
+
+
+def _composite(alpha, keep, T, stopped, factor=None):
+    """Front to back over a batch of (n, P, B) alphas from the pixels' (n, P) T and stop flags.
+
+    ``factor`` (n, P, B) scales the transmittance at and behind a surface layer. Returns
+    (T_before, contributes, 1 - alpha, new T, new stop flags); T_before and contributes per entry.
+    """
+    one_minus = 1.0 - alpha
+    after = mx.cumprod(one_minus, axis=-1)
+    before = mx.concatenate([mx.ones_like(after[..., :1]), after[..., :-1]], axis=-1)
+    scale = T[..., None] if factor is None else T[..., None] * factor
+    before, after = before * scale, after * scale
+    contributes = keep & (after >= T_MIN) & ~stopped[..., None]
+    T_new = T * mx.prod(mx.where(contributes, one_minus, 1.0), axis=-1)
+    # a kept entry that does not contribute is where the pixel stopped
+    return before, contributes, one_minus, T_new, stopped | mx.any(keep & ~contributes, axis=-1)
+
+
+def _surface_batch(batch: _Batch, depths, alpha, keep, s: dict):
+    """A batch with the surface event (``mlx3d.render.surface``) just before each pixel's first entry at or
+    behind the surface's depth; updates s['accum'], s['passed'], and returns ``_composite``'s tuple."""
+    # as the kernels: +inf for an id outside [0, N), and "behind" is not (z < surface depth), NaN included; padding never is
+    entry_depth = mx.where(batch.valid, depths[batch.ids][:, None], mx.where(batch.exists, mx.inf, -mx.inf))
+    at_or_behind = ~(entry_depth < s["s_depth"][..., None])
+    behind = (mx.cummax(at_or_behind.astype(mx.int8), axis=-1) > 0) & ~s["passed"][..., None]
+    first = behind & ~mx.concatenate([mx.zeros_like(behind[..., :1]), behind[..., :-1]], axis=-1)
+    # T in front of the surface over every kept entry before it: below 1e-4 when one of them stopped the pixel
+    excl = mx.cumprod(mx.concatenate([mx.ones_like(alpha[..., :1]), 1.0 - alpha[..., :-1]], axis=-1), axis=-1)
+    t_front = s["T"] * mx.sum(mx.where(first, excl, 0.0), axis=-1)
+    reaches = mx.any(first, axis=-1) & ~s["stopped"] & (t_front >= T_MIN)
+    s_keep = 1.0 - s["s_alpha"]
+    before, contributes, one_minus, T_new, stopped = _composite(alpha, keep, s["T"], s["stopped"], mx.where(behind, s_keep[..., None], 1.0))
+    s["accum"] = s["accum"] + mx.where(reaches, t_front, 0.0)[..., None] * s["s_color"]
+    s["passed"] = s["passed"] | mx.any(first, axis=-1)
+    T_new = T_new * mx.where(reaches, s_keep, 1.0)
+    return before, contributes, one_minus, T_new, stopped | (reaches & (t_front * s_keep < T_MIN))
+
+
+def _surface_after_last(s: dict, leaving: np.ndarray) -> None:
+    """The surface event after the last entry, on the rows that leave and have not passed or stopped."""
+    at = mx.array(leaving)[:, None] & ~s["passed"] & ~s["stopped"]
+    s["accum"] = s["accum"] + mx.where(at, s["T"], 0.0)[..., None] * s["s_color"]
+    s["T"] = s["T"] * mx.where(at, 1.0 - s["s_alpha"], 1.0)
+
+
+def _forward(means2d, conics, features, opacities, flatten_ids, grid: _Tiles, width: int, height: int, budget: int, surface=None):
+    """(accum (H,W,C) without background, alpha, last int32, final_T (H,W)).
+
+    ``surface``: (depths (N,), colour (tiles, P, C), alpha and depth (tiles, P)) for the depth-tested layer.
+    """
+    n, channels, P = means2d.shape[0], features.shape[1], grid.pixels
+    num_tiles = grid.tiles_x * grid.tiles_y
+    schedule = _Schedule(grid, flatten_ids, n, budget)
+    rows, m = mx.array(schedule.tiles), schedule.tiles.size
+    fields = {"accum": mx.zeros((m, P, channels)), "T": mx.ones((m, P)), "stopped": mx.zeros((m, P), mx.bool_), "last": mx.zeros((m, P), mx.int32)}
+    accum0, T0 = mx.zeros((num_tiles, P, channels)), mx.ones((num_tiles, P))
+    if surface is not None:
+        depths, s_color, s_alpha, s_depth = surface
+        fields.update(passed=mx.zeros((m, P), mx.bool_), s_color=s_color[rows], s_alpha=s_alpha[rows], s_depth=s_depth[rows])
+        accum0, T0 = s_color, 1.0 - s_alpha  # tiles without entries: the surface alone
+    state = _State(grid, schedule.tiles, fields)
+    while (batch := schedule.next()) is not None:
+        s = state.active
+        px, py = grid.centres(batch.tiles)
+        _, _, _, alpha, keep = _evaluate(batch, px, py, _gather(batch, means2d, conics, opacities))
+        if surface is None:
+            before, contributes, _, s["T"], s["stopped"] = _composite(alpha, keep, s["T"], s["stopped"])
+        else:
+            before, contributes, _, s["T"], s["stopped"] = _surface_batch(batch, depths, alpha, keep, s)
+        weight = mx.where(contributes, alpha * before, 0.0)
+        s["accum"] = s["accum"] + weight @ features[batch.ids]
+        s["last"] = mx.maximum(s["last"], mx.max(mx.where(contributes, batch.position, 0), axis=-1))
+        mx.eval(s)
+        stay = schedule.advance(batch, s["stopped"])
+        if surface is not None:
+            _surface_after_last(s, ~stay)
+        state.keep(stay)
+    accum = state.image("accum", accum0, width, height)
+    T = state.image("T", T0, width, height)
+    last = state.image("last", mx.zeros((num_tiles, P), mx.int32), width, height)
+    return accum, 1.0 - T, last, T
+
+
+def _backward(means2d, conics, features, opacities, flatten_ids, grid: _Tiles, budget: int, accum, final_T, cot_accum, cot_alpha):
+    """Gradients (means2d, conics, features, opacities) of the composite, given its outputs and their cotangents (H, W, ...)."""
+    n, P = means2d.shape[0], grid.pixels
+    schedule = _Schedule(grid, flatten_ids, n, budget)
+    rows, m = mx.array(schedule.tiles), schedule.tiles.size
+    g = grid.from_image(cot_accum)[rows]
+    T_final = grid.from_image(final_T)[rows]
+    fields = {
+        "T": mx.ones((m, P)), "stopped": mx.zeros((m, P), mx.bool_), "prefix": mx.zeros((m, P)), "g": g, "T_final": T_final,
+        "g_alpha_T": grid.from_image(cot_alpha)[rows] * T_final, "total": mx.sum(grid.from_image(accum)[rows] * g, axis=-1),
+    }
+    state = _State(grid, schedule.tiles, fields)
+    ids, per_entry = [], []
+    while (batch := schedule.next()) is not None:
+        s = state.active
+        px, py = grid.centres(batch.tiles)
+        gaussians = _gather(batch, means2d, conics, opacities)
+        dx, dy, e, alpha, keep = _evaluate(batch, px, py, gaussians)
+        before, contributes, one_minus, s["T"], s["stopped"] = _composite(alpha, keep, s["T"], s["stopped"])
+        weight = mx.where(contributes, alpha * before, 0.0)
+        f = features[batch.ids]  # (n, B, C)
+        fg = s["g"] @ f.swapaxes(1, 2)  # (n, P, B): f_k · dL/daccum
+        prefix = mx.cumsum(weight * fg, axis=-1) + s["prefix"][..., None]
+        behind_g = s["total"][..., None] - prefix  # (colour behind entry k) · dL/daccum
+        dl_dalpha = mx.where(contributes, before * fg - (behind_g - s["g_alpha_T"][..., None]) / one_minus, 0.0)
+        _, _, ca, cb, cc, o = gaussians
+        raw = o * e
+        clamped = raw > ALPHA_MAX
+        dl_dpower = mx.where(clamped, 0.0, raw * dl_dalpha)
+        grads = mx.stack([
+            -dl_dpower * (ca * dx + cb * dy), -dl_dpower * (cb * dx + cc * dy),
+            -0.5 * dl_dpower * dx * dx, -dl_dpower * dx * dy, -0.5 * dl_dpower * dy * dy,
+            mx.where(clamped, 0.0, e * dl_dalpha),
+        ], axis=-1).sum(axis=1)  # (n, B, 6), summed over the tile's pixels
+        per_entry.append(mx.concatenate([grads, weight.swapaxes(1, 2) @ s["g"]], axis=-1).reshape(-1, 6 + f.shape[-1]))
+        ids.append(mx.where(batch.valid[:, 0], batch.ids, n).reshape(-1))  # invalid entries go to a spare row
+        s["prefix"] = prefix[..., -1]
+        mx.eval(s, per_entry[-1])
+        state.keep(schedule.advance(batch, s["stopped"]))
+    total = mx.zeros((n + 1, 6 + features.shape[1]))
+    if per_entry:
+        total = total.at[mx.concatenate(ids)].add(mx.concatenate(per_entry))
+    total = total[:n]
+    return total[:, :2], total[:, 2:5], total[:, 6:], total[:, 5]
+
+
+@functools.lru_cache(maxsize=64)
+def _rasterizer(width: int, height: int, tile: int, budget: int):
+    """The differentiable composite for one image and tile size: (accum, alpha, last, final_T)."""
+
+    @mx.custom_function
+    def raster(means2d, conics, features, opacities, tile_offsets, flatten_ids):
+        grid = _Tiles.of(tile_offsets, width, height, tile)
+        return _forward(means2d, conics, features, opacities, flatten_ids, grid, width, height, budget)
+
+    @raster.vjp
+    def raster_vjp(primals, cotangents, outputs):
+        means2d, conics, features, opacities, tile_offsets, flatten_ids = primals
+        accum, _, _, final_T = outputs
+        cot_accum = mx.zeros_like(accum) if cotangents[0] is None else cotangents[0].astype(mx.float32)
+        cot_alpha = mx.zeros_like(final_T) if cotangents[1] is None else cotangents[1].astype(mx.float32)
+        grid = _Tiles.of(tile_offsets, width, height, tile)
+        grads = _backward(means2d, conics, features, opacities, flatten_ids, grid, budget, accum, final_T, cot_accum, cot_alpha)
+        return (*grads, mx.zeros_like(tile_offsets), mx.zeros_like(flatten_ids))
+
+    return raster
+
+
+def rasterize_mlx(
+    means2d, conics, features, opacities, tile_offsets, flatten_ids, width: int, height: int, tile_size: int = 16,
+    num_threads: int | None = None, *, check_indices: bool = True, batch_elements: int = BATCH_ELEMENTS,
+):
+    """Composite binned Gaussians with MLX operations; arguments and outputs as
+    :func:`mlx3d.render.raster_cpu.rasterize_cpu` (``num_threads`` is accepted and ignored;
+    ``batch_elements``: (pixel, entry) pairs per depth batch, the memory/overhead trade-off).
+    Returns (accum (H,W,C) without background, alpha (H,W), last (H,W) int32); differentiable
+    w.r.t. means2d, conics, features and opacities (entries with an id outside [0, N) are skipped).
+    """
+    del num_threads
+    (means2d, conics, features, opacities, tile_offsets, flatten_ids, width, height, tile_size) = prepare_inputs(
+        means2d, conics, features, opacities, tile_offsets, flatten_ids, width, height, tile_size, check_indices
+    )
+    accum, alpha, last, _ = _rasterizer(width, height, tile_size, int(batch_elements))(means2d, conics, features, opacities, tile_offsets, flatten_ids)
+    return accum, alpha, last
+
+
+def rasterize_mlx_surface(
+    means2d, conics, features, opacities, tile_offsets, flatten_ids, depths, surface_color, surface_alpha, surface_depth,
+    width: int, height: int, tile_size: int = 16, num_threads: int | None = None, *, batch_elements: int = BATCH_ELEMENTS,
+):
+    """:func:`rasterize_mlx` composited with a surface layer in depth order (forward-only); arguments and
+    outputs as :func:`mlx3d.render.raster_cpu.rasterize_cpu_surface`."""
+    del num_threads
+    (means2d, conics, features, opacities, tile_offsets, flatten_ids, width, height, tile_size) = prepare_inputs(
+        means2d, conics, features, opacities, tile_offsets, flatten_ids, width, height, tile_size, False
+    )
+    grid = _Tiles.of(tile_offsets, width, height, tile_size)
+    arrays = [mx.stop_gradient(mx.array(a, dtype=mx.float32)) for a in (depths, surface_color, surface_alpha, surface_depth)]
+    if arrays[0].shape != (means2d.shape[0],):
+        raise ValueError(f"depths must have shape (N,) = ({means2d.shape[0]},), got {tuple(arrays[0].shape)}")
+    for name, a, shape in zip(("surface_color", "surface_alpha", "surface_depth"), arrays[1:],
+                              ((height, width, features.shape[1]), (height, width), (height, width))):
+        if tuple(a.shape) != shape:
+            raise ValueError(f"{name} must have shape {shape}, got {tuple(a.shape)}")
+    surface = (arrays[0], grid.from_image(arrays[1]), grid.from_image(arrays[2]), grid.from_image(arrays[3]))
+
+    @mx.custom_function
+    def composite(means2d, conics, features, opacities):
+        return _forward(means2d, conics, features, opacities, flatten_ids, grid, width, height, int(batch_elements), surface)
+
+    @composite.vjp
+    def no_gradient(primals, cotangents, outputs):
+        raise RuntimeError("rasterize_mlx_surface: compositing over a surface is forward-only (no gradients); render without `surface` "
+                           "to differentiate.")
+
+    accum, alpha, last, _ = composite(means2d, conics, features, opacities)
+    return accum, alpha, last
