@@ -32,7 +32,7 @@ import threading
 import mlx.core as mx
 import numpy as np
 
-__all__ = ["rasterize_cpu", "rasterize_cpu_surface", "set_num_threads", "get_num_threads", "prepare_inputs"]
+__all__ = ["rasterize_cpu", "rasterize_cpu_surface", "set_num_threads", "get_num_threads", "prepare_inputs", "surface_forward_only"]
 
 _ENV_THREADS = "MLX3D_NUM_THREADS"
 _lock = threading.Lock()
@@ -252,3 +252,17 @@ def rasterize_cpu_surface(
 
 
 _SURFACE_INPUTS = ("depths", "surface_color", "surface_alpha", "surface_depth")
+
+
+def surface_forward_only(composite, name: str, *inputs):
+    """``composite(*inputs)`` (the surface variants' outputs) with a vjp that raises, as the CPU primitive's does."""
+
+    @mx.custom_function
+    def forward(*args):
+        return composite(*args)
+
+    @forward.vjp
+    def no_gradient(primals, cotangents, outputs):
+        raise RuntimeError(f"{name}: compositing over a surface is forward-only (no gradients); render without `surface` to differentiate.")
+
+    return forward(*inputs)

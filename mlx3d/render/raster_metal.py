@@ -1,11 +1,12 @@
 """The Metal rasterizer (Apple GPUs): ``mx.fast.metal_kernel`` kernels wrapped
 in an ``mx.custom_function`` whose vjp runs the backward kernel.
 
-Same signature and outputs as :func:`mlx3d.render.raster_cpu.rasterize_cpu`.
-The per-pixel math is ``mlx3d/csrc/raster_math.h``, read at import time and
-passed as the kernels' ``header``; the C++ CPU primitives compile the same
-file, so the CPU tests check the math these kernels run. Only the kernel
-bodies below are Metal-specific.
+Same signature and outputs as :func:`mlx3d.render.raster_cpu.rasterize_cpu`
+(and ``rasterize_metal_surface`` as ``rasterize_cpu_surface``). The per-pixel
+math is ``mlx3d/csrc/raster_math.h``, read at import time and passed as the
+kernels' ``header``; the C++ CPU primitives compile the same file, so the CPU
+tests check the math these kernels run. Only the kernel bodies below are
+Metal-specific.
 
 - forward: one thread per pixel, one threadgroup per tile (tile_size² threads,
   so tile_size <= 32); each thread walks its tile's range of flatten_ids front
@@ -15,6 +16,17 @@ bodies below are Metal-specific.
   gradients are summed with float atomics (``atomic_outputs=True``), so their
   summation order (and last bits) can vary from run to run, unlike the CPU
   kernel's.
+- surface forward: the forward with a surface layer composited in depth order
+  (``mlx3d.render.surface``), forward-only.
+
+The kernels are launched through one small interface, :class:`RasterKernels`
+(``forward``, ``backward``, ``surface``: arrays in, arrays out), built from a
+*kernel builder* with ``mx.fast.metal_kernel``'s signature. ``use_builder``
+swaps the builder: the test suite runs these exact kernel sources compiled as
+C++ through it (``tests/metal_emulator.py``), so every line of this module
+runs on Linux; another GPU backend (MLX's ``mx.fast.cuda_kernel``) would give
+``RasterKernels`` its own bodies and builder, with the rest of the path
+unchanged.
 
 Importing this module never builds a kernel; kernels are built on first use,
 and :func:`rasterize_metal` raises RuntimeError where Metal is unavailable
@@ -23,15 +35,19 @@ and :func:`rasterize_metal` raises RuntimeError where Metal is unavailable
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import threading
 from pathlib import Path
 
 import mlx.core as mx
 
-from .raster_cpu import prepare_inputs
+from .raster_cpu import prepare_inputs, surface_forward_only
 
-__all__ = ["rasterize_metal", "metal_available", "kernel_header", "forward_source", "backward_source"]
+__all__ = [
+    "rasterize_metal", "rasterize_metal_surface", "metal_available", "kernel_header", "forward_source", "backward_source",
+    "surface_source", "RasterKernels", "use_builder",
+]
 
 _HERE = Path(__file__).resolve().parent
 # Installed wheels carry a copy next to this file (CMakeLists.txt installs it);
@@ -52,6 +68,7 @@ FORWARD_INPUTS = ["means2d", "conics", "features", "opacities", "tile_offsets", 
 FORWARD_OUTPUTS = ["out_accum", "out_alpha", "out_last", "out_final_T"]
 BACKWARD_INPUTS = FORWARD_INPUTS + ["last", "final_T", "cot_accum", "cot_alpha"]
 BACKWARD_OUTPUTS = ["g_means2d", "g_conics", "g_features", "g_opacities"]
+SURFACE_INPUTS = FORWARD_INPUTS + ["depths", "surface_color", "surface_alpha", "surface_depth"]
 
 # Template constants of both kernels: WIDTH, HEIGHT, TILE, TILES_X, CH (channels).
 _PIXEL_PREAMBLE = """
@@ -157,6 +174,67 @@ _BACKWARD_BODY = """
 """
 
 
+# The surface forward (mlx3d.render.surface): before the first entry whose depth is not below the pixel's
+# surface depth (after the last if none), a pixel that has not stopped takes accum += T * colour,
+# T *= 1 - surface alpha, and stops if T < RM_T_MIN.
+_SURFACE_BODY = """
+    float acc[CH];
+    for (int ch = 0; ch < CH; ++ch) {
+        acc[ch] = 0.0f;
+    }
+    float T = 1.0f;
+    int n_last = 0;
+    bool passed = false;
+    bool stopped = false;
+    const float s_depth = surface_depth[pix];
+    const float s_alpha = surface_alpha[pix];
+    for (int k = start; k < end; ++k) {
+        const int g = flatten_ids[k];
+        if (!passed && !(depths[g] < s_depth)) {
+            passed = true;
+            for (int ch = 0; ch < CH; ++ch) {
+                acc[ch] = acc[ch] + T * surface_color[pix * CH + ch];
+            }
+            T = rm_next_T(T, s_alpha);
+            if (T < RM_T_MIN) {
+                stopped = true;
+                break;
+            }
+        }
+        const float dx = means2d[2 * g] - fx;
+        const float dy = means2d[2 * g + 1] - fy;
+        const float power = rm_power(conics[3 * g], conics[3 * g + 1], conics[3 * g + 2], dx, dy);
+        const float alpha = rm_alpha(opacities[g], rm_exp(power), power);
+        if (!(alpha > 0.0f)) {
+            continue;
+        }
+        const float next_T = rm_next_T(T, alpha);
+        if (next_T < RM_T_MIN) {
+            stopped = true;
+            break;
+        }
+        const float w = alpha * T;
+        for (int ch = 0; ch < CH; ++ch) {
+            acc[ch] = acc[ch] + features[g * CH + ch] * w;
+        }
+        T = next_T;
+        n_last = k - start + 1;
+    }
+    if (!passed && !stopped) {
+        for (int ch = 0; ch < CH; ++ch) {
+            acc[ch] = acc[ch] + T * surface_color[pix * CH + ch];
+        }
+        T = rm_next_T(T, s_alpha);
+    }
+    for (int ch = 0; ch < CH; ++ch) {
+        out_accum[pix * CH + ch] = acc[ch];
+    }
+    out_alpha[pix] = 1.0f - T;
+    out_last[pix] = n_last;
+    out_final_T[pix] = T;
+"""
+
+
 def metal_available() -> bool:
     """True where MLX can run Metal kernels (Apple GPUs)."""
     try:
@@ -185,127 +263,182 @@ def backward_source() -> str:
     return _PIXEL_PREAMBLE + _BACKWARD_BODY
 
 
-_kernel_lock = threading.Lock()
-_kernel_cache: dict = {}
+def surface_source() -> str:
+    """Body of the surface forward kernel (one thread per pixel)."""
+    return _PIXEL_PREAMBLE + _SURFACE_BODY
 
 
 def _metal_kernel(**kwargs):
-    # rm_exp rounds with (x + 1.5·2^23) - 1.5·2^23 and the skip rules rely on
-    # NaN comparisons: both need IEEE ("safe") math, MLX's default; ask for it
-    # explicitly where this MLX takes compile options.
+    """``mx.fast.metal_kernel`` asking for IEEE ("safe") math where this MLX takes compile options:
+    rm_exp rounds with (x + 1.5·2^23) - 1.5·2^23 and the skip rules rely on NaN comparisons."""
     try:
         return mx.fast.metal_kernel(**kwargs, compile_options={"math_mode": "safe"})
     except TypeError:
         return mx.fast.metal_kernel(**kwargs)
 
 
-def _kernels():
-    """(forward, backward) metal_kernel objects, built on first use."""
-    with _kernel_lock:
-        if not _kernel_cache:
-            header = kernel_header()
-            _kernel_cache["forward"] = _metal_kernel(
-                name="mlx3d_rasterize_forward",
-                input_names=FORWARD_INPUTS,
-                output_names=FORWARD_OUTPUTS,
-                source=forward_source(),
-                header=header,
-            )
-            _kernel_cache["backward"] = _metal_kernel(
-                name="mlx3d_rasterize_backward",
-                input_names=BACKWARD_INPUTS,
-                output_names=BACKWARD_OUTPUTS,
-                source=backward_source(),
-                header=header,
-                atomic_outputs=True,
-            )
-        return _kernel_cache["forward"], _kernel_cache["backward"]
+class RasterKernels:
+    """The rasterizer's GPU kernels, each a launch function: arrays in, arrays out.
+
+    ``build`` has ``mx.fast.metal_kernel``'s signature (name, input_names, output_names, source,
+    header, atomic_outputs) and returns a launch callable (inputs, template, grid, threadgroup,
+    output_shapes, output_dtypes, init_value); kernels are built on first use.
+    """
+
+    def __init__(self, build=_metal_kernel):
+        self._build = build
+        self._lock = threading.Lock()
+        self._built: dict = {}
+
+    def _kernel(self, name: str):
+        with self._lock:
+            if name not in self._built:
+                inputs, outputs, source, atomic = {
+                    "forward": (FORWARD_INPUTS, FORWARD_OUTPUTS, forward_source, False),
+                    "backward": (BACKWARD_INPUTS, BACKWARD_OUTPUTS, backward_source, True),
+                    "surface": (SURFACE_INPUTS, FORWARD_OUTPUTS, surface_source, False),
+                }[name]
+                self._built[name] = self._build(name=f"mlx3d_rasterize_{name}", input_names=inputs, output_names=outputs,
+                                                source=source(), header=kernel_header(), atomic_outputs=atomic)
+            return self._built[name]
+
+    @staticmethod
+    def _launch_args(width: int, height: int, tile: int, channels: int) -> dict:
+        tiles_x, tiles_y = -(-width // tile), -(-height // tile)
+        return dict(template=[("WIDTH", width), ("HEIGHT", height), ("TILE", tile), ("TILES_X", tiles_x), ("CH", channels)],
+                    grid=(tiles_x * tile, tiles_y * tile, 1), threadgroup=(tile, tile, 1))
+
+    def _composite(self, name: str, inputs: list, width: int, height: int, tile: int) -> tuple:
+        channels = inputs[2].shape[1]
+        return tuple(self._kernel(name)(
+            inputs=inputs, output_shapes=[(height, width, channels), (height, width), (height, width), (height, width)],
+            output_dtypes=[mx.float32, mx.float32, mx.int32, mx.float32], **self._launch_args(width, height, tile, channels)))
+
+    def forward(self, inputs: list, width: int, height: int, tile: int) -> tuple:
+        """``FORWARD_INPUTS`` -> (accum (H,W,C), alpha, last int32, final_T)."""
+        return self._composite("forward", inputs, width, height, tile)
+
+    def surface(self, inputs: list, width: int, height: int, tile: int) -> tuple:
+        """``SURFACE_INPUTS`` -> the outputs of ``forward`` with the surface layer composited."""
+        return self._composite("surface", inputs, width, height, tile)
+
+    def backward(self, inputs: list, width: int, height: int, tile: int) -> tuple:
+        """``BACKWARD_INPUTS`` -> gradients of means2d, conics, features, opacities."""
+        shapes = [a.shape for a in inputs[:4]]
+        return tuple(self._kernel("backward")(
+            inputs=inputs, output_shapes=shapes, output_dtypes=[mx.float32] * 4, init_value=0,
+            **self._launch_args(width, height, tile, inputs[2].shape[1])))
+
+
+_kernels = RasterKernels()
+
+
+def kernels() -> RasterKernels:
+    """The active kernels (Metal's, unless ``use_builder`` is in effect)."""
+    return _kernels
+
+
+@contextlib.contextmanager
+def use_builder(build):
+    """Runs the block with kernels built by ``build`` (``mx.fast.metal_kernel``'s signature) instead of Metal's."""
+    global _kernels
+    previous, _kernels = _kernels, RasterKernels(build)
+    _rasterizer.cache_clear()
+    try:
+        yield _kernels
+    finally:
+        _kernels = previous
+        _rasterizer.cache_clear()
 
 
 @functools.lru_cache(maxsize=64)
-def _rasterizer(width: int, height: int, tile: int, channels: int):
-    """The differentiable rasterizer for one image size, tile size and channel count."""
-    forward, backward = _kernels()
-    tiles_x = -(-width // tile)
-    tiles_y = -(-height // tile)
-    template = [("WIDTH", width), ("HEIGHT", height), ("TILE", tile), ("TILES_X", tiles_x), ("CH", channels)]
-    grid = (tiles_x * tile, tiles_y * tile, 1)
-    threadgroup = (tile, tile, 1)
+def _rasterizer(width: int, height: int, tile: int):
+    """The differentiable rasterizer for one image size and tile size."""
 
     @mx.custom_function
     def raster(means2d, conics, features, opacities, tile_offsets, flatten_ids):
-        outs = forward(
-            inputs=[means2d, conics, features, opacities, tile_offsets, flatten_ids],
-            template=template,
-            grid=grid,
-            threadgroup=threadgroup,
-            output_shapes=[(height, width, channels), (height, width), (height, width), (height, width)],
-            output_dtypes=[mx.float32, mx.float32, mx.int32, mx.float32],
-        )
-        return tuple(outs)
+        return kernels().forward([means2d, conics, features, opacities, tile_offsets, flatten_ids], width, height, tile)
 
     @raster.vjp
     def raster_vjp(primals, cotangents, outputs):
         means2d, conics, features, opacities, tile_offsets, flatten_ids = primals
-        cot_accum = cotangents[0] if cotangents[0] is not None else mx.zeros((height, width, channels))
-        cot_alpha = cotangents[1] if cotangents[1] is not None else mx.zeros((height, width))
-        grads = backward(
-            inputs=[
-                means2d, conics, features, opacities, tile_offsets, flatten_ids,
-                outputs[2], outputs[3], cot_accum.astype(mx.float32), cot_alpha.astype(mx.float32),
-            ],
-            template=template,
-            grid=grid,
-            threadgroup=threadgroup,
-            output_shapes=[means2d.shape, conics.shape, features.shape, opacities.shape],
-            output_dtypes=[mx.float32] * 4,
-            init_value=0,
-        )
-        return (grads[0], grads[1], grads[2], grads[3], mx.zeros_like(tile_offsets), mx.zeros_like(flatten_ids))
+        cot_accum = mx.zeros_like(outputs[0]) if cotangents[0] is None else cotangents[0].astype(mx.float32)
+        cot_alpha = mx.zeros_like(outputs[1]) if cotangents[1] is None else cotangents[1].astype(mx.float32)
+        grads = kernels().backward(
+            [means2d, conics, features, opacities, tile_offsets, flatten_ids, outputs[2], outputs[3], cot_accum, cot_alpha], width, height, tile)
+        return (*grads, mx.zeros_like(tile_offsets), mx.zeros_like(flatten_ids))
 
     return raster
 
 
+def _checked(args: tuple, check_indices: bool) -> tuple:
+    """``prepare_inputs`` plus the Metal rules (tile_size <= 32, Metal available)."""
+    checked = prepare_inputs(*args, check_indices=check_indices)
+    if checked[-1] > 32:
+        raise ValueError(f"tile_size must be <= 32 for the Metal rasterizer (one thread per pixel), got {checked[-1]}")
+    if not metal_available():
+        raise RuntimeError(
+            "rasterize_metal needs Metal (an Apple GPU), which MLX reports as unavailable here; "
+            "use mlx3d.render.raster_cpu.rasterize_cpu (the 'cpu' backend) or raster_mlx.rasterize_mlx ('mlx')."
+        )
+    return checked
+
+
+def _nothing_drawn(means2d, flatten_ids, height: int, width: int, channels: int):
+    """The outputs where no Gaussian is drawn (they then do not depend on the inputs), else None."""
+    if means2d.shape[0] and flatten_ids.shape[0]:
+        return None
+    return mx.zeros((height, width, channels), dtype=mx.float32), mx.zeros((height, width), dtype=mx.float32), mx.zeros((height, width), dtype=mx.int32)
+
+
 def rasterize_metal(
-    means2d,
-    conics,
-    features,
-    opacities,
-    tile_offsets,
-    flatten_ids,
-    width: int,
-    height: int,
-    tile_size: int = 16,
-    num_threads: int | None = None,
+    means2d, conics, features, opacities, tile_offsets, flatten_ids, width: int, height: int, tile_size: int = 16,
+    num_threads: int | None = None, *, check_indices: bool = True,
 ):
     """Composite binned Gaussians on an Apple GPU; arguments and outputs as in
     :func:`mlx3d.render.raster_cpu.rasterize_cpu` (``num_threads`` is accepted
-    and ignored). Differentiable w.r.t. means2d, conics, features, opacities.
+    and ignored; ``check_indices=False`` skips reading the integer inputs back,
+    for the renderer's own binning). Differentiable w.r.t. means2d, conics,
+    features, opacities.
 
     Raises:
         ValueError: bad inputs (named), or tile_size > 32 (threadgroups hold
             at most 1024 threads).
         RuntimeError: Metal is not available here.
     """
-    (means2d, conics, features, opacities, tile_offsets, flatten_ids, width, height, tile_size) = prepare_inputs(
-        means2d, conics, features, opacities, tile_offsets, flatten_ids, width, height, tile_size
-    )
-    if tile_size > 32:
-        raise ValueError(f"tile_size must be <= 32 for the Metal rasterizer (one thread per pixel), got {tile_size}")
-    if not metal_available():
-        raise RuntimeError(
-            "rasterize_metal needs Metal (an Apple GPU), which MLX reports as unavailable here; "
-            "use mlx3d.render.raster_cpu.rasterize_cpu (the 'cpu' backend)."
-        )
+    del num_threads
+    means2d, conics, features, opacities, tile_offsets, flatten_ids, width, height, tile_size = _checked(
+        (means2d, conics, features, opacities, tile_offsets, flatten_ids, width, height, tile_size), check_indices)
+    empty = _nothing_drawn(means2d, flatten_ids, height, width, features.shape[1])
+    if empty is not None:
+        return empty
+    accum, alpha, last, _final_t = _rasterizer(width, height, tile_size)(means2d, conics, features, opacities, tile_offsets, flatten_ids)
+    return accum, alpha, last
+
+
+def rasterize_metal_surface(
+    means2d, conics, features, opacities, tile_offsets, flatten_ids, depths, surface_color, surface_alpha, surface_depth,
+    width: int, height: int, tile_size: int = 16, num_threads: int | None = None,
+):
+    """:func:`rasterize_metal` composited with a surface layer in depth order (forward-only); arguments
+    and outputs as :func:`mlx3d.render.raster_cpu.rasterize_cpu_surface`. The surface arrays are
+    checked by shape (ValueError naming them); differentiating raises."""
+    del num_threads
+    means2d, conics, features, opacities, tile_offsets, flatten_ids, width, height, tile_size = _checked(
+        (means2d, conics, features, opacities, tile_offsets, flatten_ids, width, height, tile_size), False)
     channels = features.shape[1]
-    if means2d.shape[0] == 0 or flatten_ids.shape[0] == 0:
-        # Nothing is drawn; the outputs do not depend on the inputs (zero gradients).
-        return (
-            mx.zeros((height, width, channels), dtype=mx.float32),
-            mx.zeros((height, width), dtype=mx.float32),
-            mx.zeros((height, width), dtype=mx.int32),
-        )
-    accum, alpha, last, _final_t = _rasterizer(width, height, tile_size, channels)(
-        means2d, conics, features, opacities, tile_offsets, flatten_ids
-    )
+    layer = []
+    for name, a, shape in zip(("depths", "surface_color", "surface_alpha", "surface_depth"), (depths, surface_color, surface_alpha, surface_depth),
+                              ((means2d.shape[0],), (height, width, channels), (height, width), (height, width))):
+        a = mx.array(a, dtype=mx.float32) if not isinstance(a, mx.array) else a.astype(mx.float32)
+        if tuple(a.shape) != shape:
+            raise ValueError(f"{name} must have shape {shape}, got {tuple(a.shape)}")
+        layer.append(a)
+    if _nothing_drawn(means2d, flatten_ids, height, width, channels) is not None:
+        return layer[1], layer[2], mx.zeros((height, width), dtype=mx.int32)
+    def composite(*inputs):
+        return kernels().surface(list(inputs), width, height, tile_size)
+
+    inputs = (means2d, conics, features, opacities, tile_offsets, flatten_ids, *layer)
+    accum, alpha, last, _final_t = surface_forward_only(composite, "rasterize_metal_surface", *inputs)
     return accum, alpha, last

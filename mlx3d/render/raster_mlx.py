@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import mlx.core as mx
 import numpy as np
 
-from .raster_cpu import prepare_inputs
+from .raster_cpu import prepare_inputs, surface_forward_only
 
 __all__ = ["rasterize_mlx", "rasterize_mlx_surface", "BATCH_ELEMENTS"]
 
@@ -365,7 +365,7 @@ def rasterize_mlx_surface(
         means2d, conics, features, opacities, tile_offsets, flatten_ids, width, height, tile_size, False
     )
     grid = _Tiles.of(tile_offsets, width, height, tile_size)
-    arrays = [mx.stop_gradient(mx.array(a, dtype=mx.float32)) for a in (depths, surface_color, surface_alpha, surface_depth)]
+    arrays = [mx.array(a, dtype=mx.float32) for a in (depths, surface_color, surface_alpha, surface_depth)]
     if arrays[0].shape != (means2d.shape[0],):
         raise ValueError(f"depths must have shape (N,) = ({means2d.shape[0]},), got {tuple(arrays[0].shape)}")
     for name, a, shape in zip(("surface_color", "surface_alpha", "surface_depth"), arrays[1:],
@@ -374,14 +374,8 @@ def rasterize_mlx_surface(
             raise ValueError(f"{name} must have shape {shape}, got {tuple(a.shape)}")
     surface = (arrays[0], grid.from_image(arrays[1]), grid.from_image(arrays[2]), grid.from_image(arrays[3]))
 
-    @mx.custom_function
     def composite(means2d, conics, features, opacities):
         return _forward(means2d, conics, features, opacities, flatten_ids, grid, width, height, int(batch_elements), surface)
 
-    @composite.vjp
-    def no_gradient(primals, cotangents, outputs):
-        raise RuntimeError("rasterize_mlx_surface: compositing over a surface is forward-only (no gradients); render without `surface` "
-                           "to differentiate.")
-
-    accum, alpha, last, _ = composite(means2d, conics, features, opacities)
+    accum, alpha, last, _ = surface_forward_only(composite, "rasterize_mlx_surface", means2d, conics, features, opacities)
     return accum, alpha, last

@@ -65,7 +65,7 @@ def composite(means2d, conics, features, opacities, bins: Bins, width: int, heig
     else:
         from .raster_metal import rasterize_metal
 
-        accum, alpha, last = rasterize_metal(*args)
+        accum, alpha, last = rasterize_metal(*args, check_indices=False)
     if background is not None:
         accum = accum + (1.0 - alpha)[..., None] * mx.array(background, dtype=mx.float32)
     return accum, alpha, last
