@@ -147,7 +147,7 @@ def _project_and_bin(camera, means, quats, scales, opacities, method: str, antia
     """Projection, antialias compensation, tile binning (extents tightened by the opacities)."""
     ran = [] if ran is None else ran
     proj, opac = _project(camera, means, quats, scales, opacities, method, antialias, blur, ran, backend)
-    bins = bin_tiles(proj.means2d, proj.radii, proj.depths, camera.width, camera.height, tile_size, proj.conics, opac)
+    bins = bin_tiles(proj.means2d, proj.radii, proj.depths, camera.width, camera.height, tile_size, proj.conics, opac, backend)
     ran.append("bin_tiles")
     return proj, opac, bins
 
@@ -224,13 +224,12 @@ def render_gaussians(
     ``surface``: a ``Surface`` (premultiplied colour (H,W,3), alpha, camera-z
     depth) composited with the Gaussians in depth order, before the
     background; ``alpha`` then includes its coverage. Forward-only where it
-    has a finite depth (stages ``...+surface_depth_test``; on the CPU kernel
-    for backend 'metal', stage ``surface_cpu_fallback``), a background image
-    otherwise (stage ``surface_behind``); not combinable with the geometry
+    has a finite depth (stage ``...+surface_depth_test``, on every
+    backend's rasterizer), a background image otherwise (stage ``surface_behind``); not combinable with the geometry
     channels. See ``mlx3d.render.surface``.
 
     Keyword-only additions: the geometry options above, ``backend`` ('auto',
-    'cpu', 'metal', 'reference'), ``blur`` (pixels², 0.3), ``tile_size`` and
+    'cpu', 'metal', 'mlx', 'reference'; see ``resolve_backend``), ``blur`` (pixels², 0.3), ``tile_size`` and
     ``means2d_offset``: optional (N,2) added to the projected 2D means. Pass
     zeros and differentiate w.r.t. it to get dL/d(means2d), the screen-space
     gradient that density control accumulates.
