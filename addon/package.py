@@ -1,40 +1,92 @@
-"""Build the Blender extension zip of mlx3d (``make extension``).
+"""Build the Blender extension zips of mlx3d (``make extension``).
 
-    .venv/bin/python addon/package.py [--platform linux-x64] [--python 3.11,3.13] [--out dist]
+    .venv/bin/python addon/package.py [--platform NAME[,NAME...]|all] [--python 3.11,3.13] [--out dist]
 
-Steps, each printed as it runs:
+``NAME`` is a Blender platform: ``linux-x64``, ``macos-arm64``, ``windows-x64``,
+``linux-arm64``; ``all`` builds the four; the default is this machine's. Each
+platform gets its own zip, ``dist/mlx3d_splat-VERSION-PLATFORM.zip`` (``-`` in
+the name written ``_``), which holds only that platform's wheels: its
+manifest's ``platforms`` names that one platform and its ``wheels`` lists
+exactly the wheels inside. Per platform, for each Python (3.11 and 3.13):
+
+- ``linux-x64``: ``mlx`` and ``mlx-cpu`` (``manylinux_2_35_x86_64``) and our
+  compiled wheel ``mlx3d_splat-VERSION-cp3X-cp3X-linux_x86_64.whl`` with the
+  C++ kernels ``mlx3d._core``.
+- ``macos-arm64``: ``mlx`` and ``mlx-metal`` (``macosx_14_0_arm64``; there is no
+  ``mlx-cpu`` on macOS, ``mlx-metal`` carries ``libmlx.dylib`` and MLX's Metal
+  kernels) and our pure-Python wheel ``mlx3d_splat-VERSION-py3-none-any.whl``:
+  mlx3d's Metal kernels (``mlx3d/render/raster_metal.py``) on the GPU.
+- ``windows-x64``: ``mlx`` and ``mlx-cpu`` (``win_amd64``; ``mlx/core.pyd``
+  loads ``mlx.dll`` and ``libopenblas.dll``, which ``mlx-cpu`` puts next to it)
+  and our pure-Python wheel: pure MLX on the CPU.
+- ``linux-arm64``: ``mlx`` and ``mlx-cpu`` (``manylinux_2_35_aarch64``) and our
+  pure-Python wheel: pure MLX on the CPU.
+
+All of them also bundle ``plyfile`` and ``pillow``; numpy is not bundled:
+Blender ships it. Every zip is built on any machine from the registry's
+wheels, except that the compiled linux-x64 wheels are built on a linux-x64
+machine (elsewhere they must already be in ``wheels/``).
+
+Steps, each printed as it runs (once per platform):
 
 1. Read the pins: this project's wheel name and version from ``pyproject.toml``
    (``[project]``), and the exact pins of the bundled dependencies from its
-   ``[project].dependencies`` (``mlx==…``, ``plyfile==…``). numpy is not bundled:
-   Blender ships it. The ``wheels = [...]`` list of ``blender_manifest.toml``
-   is generated from these pins (every platform, Python 3.11 and 3.13) and
-   rewritten when it differs, so versions live in one place.
+   ``[project].dependencies`` (``mlx==…``, ``plyfile==…``, ``pillow==…``; a pin
+   of MLX's library wheel, ``mlx-cpu==…`` for Windows, must equal mlx's).
+   The ``platforms`` and ``wheels = [...]`` lists of ``blender_manifest.toml``
+   are generated from ``PLATFORMS`` below and these pins (every platform,
+   Python 3.11 and 3.13) and rewritten when they differ, so versions live in
+   one place.
 2. Download the third-party wheels with ``pip download --only-binary=:all:
    --no-deps --python-version 3.X --platform TAG`` into ``wheels/``: ``mlx`` (one
-   wheel per Python), its library wheel (``mlx-cpu`` on Linux, ``mlx-metal`` on
-   macOS) and ``plyfile``. Files already there are reused.
-3. Build this project's wheel ``mlx3d_splat`` (``mlx3d`` and the compiled
-   ``mlx3d._core``) once per Python: with the running interpreter when it has
-   the build requirements (the project's ``.venv``), otherwise in a build venv
-   ``build/extension/venv-cp3XY`` made from ``python3.X`` (on PATH or from
-   pyenv) with ``[build-system].requires`` installed. CMake build directories
-   are kept under ``build/extension/`` so rebuilds are incremental; a wheel
-   newer than every source file is reused (``--rebuild`` forces a build).
-   Each wheel is then imported next to the bundled MLX in a clean interpreter
-   (``python -I -S``): ``mlx3d._core`` must load and accept an ``mx.array``.
+   wheel per Python), its library wheel (``mlx-cpu`` on Linux and Windows,
+   ``mlx-metal`` on macOS), ``pillow`` (one per Python) and ``plyfile``. Files
+   already there are reused. Then check that a ``pip install`` of our wheel on
+   that platform pulls exactly ``mlx`` and that library wheel: from the markers
+   of ``[project].dependencies`` and the downloaded ``mlx`` wheel's own
+   ``Requires-Dist`` (with the extras we ask for). mlx's ``cpu`` extra adds
+   ``mlx-cpu`` on Linux only, while its Windows wheel needs ``mlx.dll`` from
+   ``mlx-cpu``: hence the explicit ``mlx-cpu`` pin for Windows in pyproject.toml.
+3. This project's wheel ``mlx3d_splat``:
+
+   - linux-x64: the compiled wheel (``mlx3d`` and ``mlx3d._core``), built once
+     per Python: with the running interpreter when it has the build
+     requirements (the project's ``.venv``), otherwise in a build venv
+     ``build/extension/venv-cp3XY`` made from ``python3.X`` (on PATH or from
+     pyenv) with ``[build-system].requires`` installed. CMake build
+     directories are kept under ``build/extension/`` so rebuilds are
+     incremental; a wheel newer than every source file is reused
+     (``--rebuild`` forces a build). Each wheel is then imported next to the
+     bundled MLX in a clean interpreter (``python -I -S``): ``mlx3d._core``
+     must load and accept an ``mx.array``.
+   - the other platforms: the pure-Python wheel, written by this script with
+     ``zipfile`` (no compiler, any machine, in seconds): the files of
+     ``[tool.scikit-build] wheel.packages`` less ``wheel.exclude`` (so no
+     ``mlx3d/csrc``) and less caches and compiled modules, plus
+     ``mlx3d/render/raster_math.h`` copied from ``mlx3d/csrc`` (the compiled
+     wheel gets it from CMakeLists.txt's ``install(FILES ...)``; the Metal
+     kernels read it there), and a ``.dist-info`` (METADATA from
+     ``[project]``, with the same ``Requires-Dist`` markers, entry points,
+     ``WHEEL`` with ``Root-Is-Purelib: true`` and ``Tag: py3-none-any``,
+     ``RECORD``). Its bytes do not depend on when it is built (fixed
+     timestamps), and the file is rewritten only when they change. It is
+     checked like the compiled one, unpacked alone next to the running
+     interpreter's MLX in ``python -I -S`` with ``MLX3D_NO_CORE=1``: ``mlx3d``
+     imports from it, holds no ``_core``, and
+     ``mlx3d.render.raster_metal.kernel_header()`` returns ``raster_math.h``.
 4. Check that every wheel the manifest lists for the platform exists.
 5. Stage the extension (manifest narrowed to the platform and Pythons, root
-   ``__init__.py``, ``addon/`` without this script, the wheels) under
-   ``build/extension/stage-PLATFORM`` and run Blender's
+   ``__init__.py``, ``addon/`` without this script, the wheels) in a new
+   ``build/extension/stage-PLATFORM-*`` (removed afterwards) and run Blender's
    ``blender_ext.py build --split-platforms`` (from the ``bpy`` package, or
    ``--blender-ext PATH``), then ``blender_ext.py validate`` on the zip.
-6. Print the zip path, its size and the wheels inside.
+6. Check the zip's wheels and manifest, print its path, size and the wheels
+   inside.
 
 Blender 4.5 LTS and 5.0 embed Python 3.11, Blender 5.1+ Python 3.13, hence the
 default ``--python 3.11,3.13``. MLX publishes one wheel per Python version, so
-the extension ships one ``mlx`` and one ``mlx3d_splat`` wheel per version;
-Blender installs the matching ones into
+the extension ships one ``mlx`` wheel (and on linux-x64 one ``mlx3d_splat``
+wheel) per version; Blender installs the matching ones into
 ``<user resources>/extensions/.local/lib/python3.X/site-packages``, where
 ``mlx3d/_core`` finds ``libmlx`` through its rpath ``$ORIGIN/../mlx/lib``.
 (A stable-ABI ``abi3`` build of ``_core`` is not used: nanobind keeps
@@ -43,26 +95,23 @@ take the ``mx.array`` objects of ``mlx.core``, which is not a stable-ABI build.)
 
 Linux x86-64 (``linux-x64``): MLX's wheels are tagged ``manylinux_2_35_x86_64``
 (glibc 2.35+); ours is tagged ``linux_x86_64``, which Blender maps to
-``linux-x64`` like any ``manylinux_*_x86_64`` tag. It needs Python 3.11 (the
-venv) and Python 3.13 (``python3.13`` on PATH, or ``pyenv install 3.13``) with
-development headers, a C++20 compiler and CMake >= 3.24.
+``linux-x64`` like any ``manylinux_*_x86_64`` tag. Building it needs Python
+3.11 (the venv) and Python 3.13 (``python3.13`` on PATH, or ``pyenv install
+3.13``) with development headers, a C++20 compiler and CMake >= 3.24.
 
-macOS on Apple silicon (``macos-arm64``): run the same command on a Mac with
-the project's venv (``make extension``): it downloads the ``mlx==…`` and
-``mlx-metal==…`` wheels tagged ``macosx_14_0_arm64`` (there is no ``mlx-cpu``
-on macOS; ``mlx-metal`` carries ``libmlx.dylib`` and the Metal kernels), builds
-our wheel with ``MACOSX_DEPLOYMENT_TARGET=14.0`` for Python 3.11 and 3.13
-(``python3.13`` from python.org, Homebrew or pyenv) and writes
-``dist/mlx3d_splat-VERSION-macos_arm64.zip``. Xcode's command line tools and
-CMake are needed. A zip for a platform other than the machine's is built only
-when that platform's ``mlx3d_splat`` wheels are already in ``wheels/`` (for
-example copied from a Mac); otherwise the script names the missing files.
+The other platforms' zips need no compiler and no machine of that platform;
+``tests/test_packaging.py`` builds and validates all four. Their pure-Python
+``mlx3d`` uses the Metal kernels on Apple GPUs and pure MLX elsewhere.
 """
 
 from __future__ import annotations
 
 import argparse
+import base64
 import dataclasses
+import email.parser
+import fnmatch
+import hashlib
 import importlib.metadata
 import importlib.util
 import os
@@ -94,15 +143,40 @@ PROVIDED_BY_BLENDER = frozenset({"numpy"})
 #: Bundled dependencies (besides mlx and its library wheel) that are pure Python.
 PURE_PYTHON = frozenset({"plyfile"})
 
+#: MLX's library wheels (``libmlx``); a pin of one in ``[project].dependencies``
+#: must equal mlx's. Which one a platform bundles is ``Platform.mlx_library``.
+MLX_LIBRARIES = frozenset({"mlx_cpu", "mlx_metal"})
+
 #: Bundled compiled dependencies (one wheel per Python and platform): the platform
 #: part of their wheel file names as published for the pinned version, per Blender
 #: platform. ``pip download --platform`` gets the last tag of a compound one.
 BINARY_WHEEL_TAGS = {
-    "pillow": {"linux-x64": "manylinux_2_27_x86_64.manylinux_2_28_x86_64", "macos-arm64": "macosx_11_0_arm64"},
+    "pillow": {
+        "linux-x64": "manylinux_2_27_x86_64.manylinux_2_28_x86_64",
+        "macos-arm64": "macosx_11_0_arm64",
+        "windows-x64": "win_amd64",
+        "linux-arm64": "manylinux_2_27_aarch64.manylinux_2_28_aarch64",
+    },
 }
 
-#: Sources of our wheel: a wheel older than any of these is rebuilt.
+#: Sources of our compiled wheel: a wheel older than any of these is rebuilt.
 SOURCE_INPUTS = ("pyproject.toml", "CMakeLists.txt", "mlx3d")
+
+#: Files CMakeLists.txt installs into the compiled wheel besides ``_core``
+#: (``install(FILES ...)``): (source in the tree, path in the wheel). The pure
+#: wheel copies them to the same place; the Metal kernels read raster_math.h
+#: next to ``mlx3d/render/raster_metal.py``.
+PURE_WHEEL_EXTRA_FILES = (("mlx3d/csrc/raster_math.h", "mlx3d/render/raster_math.h"),)
+
+#: Never put into the pure wheel: caches and compiled modules of a checkout.
+_NOT_PACKAGED_SUFFIXES = frozenset({".pyc", ".pyo", ".so", ".pyd", ".dylib", ".dll"})
+
+#: ``[project]`` keys the pure wheel's METADATA is written from; any other key
+#: stops the build (teach ``_pure_metadata`` about it first).
+_PURE_METADATA_KEYS = frozenset({
+    "name", "version", "description", "requires-python", "dependencies", "optional-dependencies",
+    "scripts", "gui-scripts", "entry-points", "keywords", "classifiers", "urls",
+})
 
 
 class PackagingError(RuntimeError):
@@ -113,27 +187,49 @@ class PackagingError(RuntimeError):
 class Platform:
     name: str  # Blender's platform name (manifest ``platforms``)
     mlx_tag: str  # platform tag of MLX's wheels (``pip download --platform``)
-    own_tag: str  # platform tag of our wheel as built on that platform
     mlx_library: str  # the wheel that carries libmlx
-    host: tuple[str, str]  # (platform.system(), platform.machine()) of a build machine
-    build_env: tuple[tuple[str, str], ...] = ()
+    host: tuple[str, str]  # (platform.system(), platform.machine()) of a machine of this platform
+    markers: tuple[tuple[str, str], ...]  # its PEP 508 environment markers (Requires-Dist checks)
+    own_tag: str | None = None  # platform tag of our compiled wheel; None: the pure-Python wheel
+
+    @property
+    def compiled(self) -> bool:
+        return self.own_tag is not None
 
 
 PLATFORMS = {
     "linux-x64": Platform(
         name="linux-x64",
         mlx_tag="manylinux_2_35_x86_64",
-        own_tag="linux_x86_64",
         mlx_library="mlx-cpu",
         host=("Linux", "x86_64"),
+        markers=(("sys_platform", "linux"), ("platform_system", "Linux"), ("platform_machine", "x86_64"),
+                 ("os_name", "posix")),
+        own_tag="linux_x86_64",
     ),
     "macos-arm64": Platform(
         name="macos-arm64",
         mlx_tag="macosx_14_0_arm64",
-        own_tag="macosx_14_0_arm64",
         mlx_library="mlx-metal",
         host=("Darwin", "arm64"),
-        build_env=(("MACOSX_DEPLOYMENT_TARGET", "14.0"),),
+        markers=(("sys_platform", "darwin"), ("platform_system", "Darwin"), ("platform_machine", "arm64"),
+                 ("os_name", "posix")),
+    ),
+    "windows-x64": Platform(
+        name="windows-x64",
+        mlx_tag="win_amd64",
+        mlx_library="mlx-cpu",
+        host=("Windows", "x86_64"),
+        markers=(("sys_platform", "win32"), ("platform_system", "Windows"), ("platform_machine", "AMD64"),
+                 ("os_name", "nt")),
+    ),
+    "linux-arm64": Platform(
+        name="linux-arm64",
+        mlx_tag="manylinux_2_35_aarch64",
+        mlx_library="mlx-cpu",
+        host=("Linux", "arm64"),
+        markers=(("sys_platform", "linux"), ("platform_system", "Linux"), ("platform_machine", "aarch64"),
+                 ("os_name", "posix")),
     ),
 }
 
@@ -161,6 +257,7 @@ class BuildResult:
     zip_path: Path
     size: int
     wheels: list[str]
+    seconds: float = 0.0  # wall time of the build
 
 
 def log(message: str) -> None:
@@ -197,6 +294,22 @@ def parse_pythons(text: str) -> tuple[tuple[int, int], ...]:
     return tuple(sorted(pythons))
 
 
+def parse_platforms(text: str) -> tuple[str, ...]:
+    """``linux-x64``, ``linux-x64,macos-arm64`` or ``all`` -> platform names, in ``PLATFORMS`` order."""
+    names = []
+    for part in text.split(","):
+        part = part.strip()
+        if part == "all":
+            names += PLATFORMS
+        elif part in PLATFORMS:
+            names.append(part)
+        else:
+            raise PackagingError(f"--platform: unknown platform {part!r}; choose from {', '.join(PLATFORMS)} or all")
+    if not names:
+        raise PackagingError("--platform: no platform given")
+    return tuple(name for name in PLATFORMS if name in names)
+
+
 def host_platform() -> str | None:
     """The Blender platform name of this machine, or None when unsupported."""
     host = (_platform.system(), _platform.machine().lower().replace("amd64", "x86_64").replace("aarch64", "arm64"))
@@ -214,12 +327,16 @@ def read_pins(pyproject: Path = PYPROJECT) -> Pins:
     data = tomllib.loads(pyproject.read_text())
     project = data["project"]
     bundled: dict[str, str] = {}
+    libraries: dict[str, str] = {}
     for requirement in project.get("dependencies", []):
         match = _REQ.match(requirement)
         if not match:
             raise PackagingError(f"{pyproject.name}: cannot read dependency {requirement!r}")
         name, version = _normalise(match.group(1)), match.group(2)
         if name in PROVIDED_BY_BLENDER:
+            continue
+        if name in MLX_LIBRARIES:
+            libraries[requirement] = version
             continue
         if name != "mlx" and name not in PURE_PYTHON and name not in BINARY_WHEEL_TAGS:
             raise PackagingError(
@@ -232,12 +349,26 @@ def read_pins(pyproject: Path = PYPROJECT) -> Pins:
             raise PackagingError(f"{pyproject.name}: {name} is pinned to both {bundled[name]} and {version}")
     if "mlx" not in bundled:
         raise PackagingError(f"{pyproject.name}: no mlx==VERSION pin in [project].dependencies")
+    for requirement, version in libraries.items():
+        if version != bundled["mlx"]:
+            raise PackagingError(
+                f"{pyproject.name}: {requirement!r} must pin the same version as mlx=={bundled['mlx']}")
     return Pins(
         own_name=_normalise(project["name"]),
         own_version=project["version"],
         bundled=bundled,
         build_requires=tuple(data["build-system"]["requires"]),
     )
+
+
+def pure_wheel_name(pins: Pins) -> str:
+    """File name of our pure-Python wheel (every platform but linux-x64)."""
+    return f"{pins.own_name}-{pins.own_version}-py3-none-any.whl"
+
+
+def compiled_wheel_name(pins: Pins, plat: Platform, python: tuple[int, int]) -> str:
+    """File name of our wheel with ``mlx3d._core`` for this platform and Python."""
+    return f"{pins.own_name}-{pins.own_version}-{_py_tag(python)}-{_py_tag(python)}-{plat.own_tag}.whl"
 
 
 def expected_wheels(pins: Pins, platforms, pythons) -> list[Wheel]:
@@ -250,10 +381,13 @@ def expected_wheels(pins: Pins, platforms, pythons) -> list[Wheel]:
 
     for plat_name in platforms:
         plat = PLATFORMS[plat_name]
+        if not plat.compiled:
+            add(Wheel(pure_wheel_name(pins), None, None, None))
         for python in pythons:
             tag = _py_tag(python)
             add(Wheel(f"mlx-{mlx}-{tag}-{tag}-{plat.mlx_tag}.whl", f"mlx=={mlx}", python, plat.name, plat.mlx_tag))
-            add(Wheel(f"{pins.own_name}-{pins.own_version}-{tag}-{tag}-{plat.own_tag}.whl", None, python, plat.name))
+            if plat.compiled:
+                add(Wheel(compiled_wheel_name(pins, plat, python), None, python, plat.name))
             for name in sorted(BINARY_WHEEL_TAGS.keys() & pins.bundled.keys()):
                 version, wheel_tag = pins.bundled[name], BINARY_WHEEL_TAGS[name][plat.name]
                 add(Wheel(f"{name}-{version}-{tag}-{tag}-{wheel_tag}.whl", f"{name}=={version}", python, plat.name, wheel_tag.split(".")[-1]))
@@ -283,26 +417,36 @@ def manifest_wheel_paths(wheels) -> list[str]:
 
 
 def sync_manifest(pins: Pins, *, write: bool) -> bool:
-    """Make the manifest's ``wheels`` list the full list derived from the pins.
+    """Make the manifest's ``platforms`` and ``wheels`` lists the full lists derived
+    from ``PLATFORMS`` and the pins.
 
-    Returns True when the manifest already matched. With ``write`` a stale list is
-    rewritten (and False returned); without, a stale list raises PackagingError.
+    Returns True when the manifest already matched. With ``write`` stale lists are
+    rewritten (and False returned); without, the file is left as it is and False
+    returned (the zips do not depend on it: their manifests are generated per
+    platform; tests/blender/test_extension_install.py checks it is up to date).
     """
     text = MANIFEST.read_text()
-    want = manifest_wheel_paths(expected_wheels(pins, PLATFORMS, DEFAULT_PYTHONS))
-    have = tomllib.loads(text).get("wheels")
-    if have == want:
+    want = {
+        "platforms": list(PLATFORMS),
+        "wheels": manifest_wheel_paths(expected_wheels(pins, PLATFORMS, DEFAULT_PYTHONS)),
+    }
+    have = tomllib.loads(text)
+    stale = [key for key, values in want.items() if have.get(key) != values]
+    if not stale:
         return True
     if not write:
-        raise PackagingError(
-            f"{MANIFEST.name}: the wheels list does not match the pins in pyproject.toml; "
-            "run `make extension` (addon/package.py rewrites it)"
-        )
-    new_text = replace_toml_list(text, "wheels", want, source=MANIFEST.name)
-    if tomllib.loads(new_text).get("wheels") != want:
-        raise PackagingError(f"{MANIFEST.name}: rewriting the wheels list failed")
+        log(f"  {MANIFEST.name}: the {' and '.join(stale)} list(s) do not match PLATFORMS and the pins in "
+            "pyproject.toml; left as they are (`make extension` rewrites them)")
+        return False
+    new_text = text
+    for key in stale:
+        new_text = replace_toml_list(new_text, key, want[key], source=MANIFEST.name)
+    parsed = tomllib.loads(new_text)
+    if any(parsed.get(key) != values for key, values in want.items()):
+        raise PackagingError(f"{MANIFEST.name}: rewriting the {' and '.join(stale)} list(s) failed")
     MANIFEST.write_text(new_text)
-    log(f"updated the wheels list of {MANIFEST.name} ({len(want)} wheels)")
+    log(f"updated the {' and '.join(stale)} list(s) of {MANIFEST.name} "
+        f"({len(want['platforms'])} platforms, {len(want['wheels'])} wheels)")
     return False
 
 
@@ -341,6 +485,81 @@ def download_wheels(wheels: list[Wheel], pythons) -> None:
 
 def _valid_zip(path: Path) -> bool:
     return path.is_file() and zipfile.is_zipfile(path)
+
+
+# ------------------------------------------------------------- MLX's requirements
+def _requirement_class():
+    """``packaging``'s Requirement (installed with the build requirements; pip vendors a copy)."""
+    try:
+        from packaging.requirements import Requirement
+    except ImportError:
+        try:
+            from pip._vendor.packaging.requirements import Requirement
+        except ImportError:
+            return None
+    return Requirement
+
+
+def wheel_requires_dist(path: Path) -> list[str]:
+    """The ``Requires-Dist`` lines of a wheel's METADATA."""
+    with zipfile.ZipFile(path) as zf:
+        names = [n for n in zf.namelist() if re.fullmatch(r"[^/]+\.dist-info/METADATA", n)]
+        if len(names) != 1:
+            raise PackagingError(f"{path.name}: expected one *.dist-info/METADATA, found {names}")
+        metadata = email.parser.BytesHeaderParser().parsebytes(zf.read(names[0]))
+    return metadata.get_all("Requires-Dist") or []
+
+
+def mlx_distributions(plat: Platform, python: tuple[int, int], own_requires, mlx_requires) -> set[str]:
+    """MLX's distributions that ``pip install`` of our wheel pulls on this platform and Python.
+
+    From our ``Requires-Dist`` (``[project].dependencies``) with their markers,
+    and, for the ``mlx`` requirement that applies, the mlx wheel's own
+    ``Requires-Dist`` with the extras we ask for (normalised names).
+    """
+    requirement = _requirement_class()
+    env = {**dict(plat.markers), "python_version": _fmt_py(python), "python_full_version": f"{_fmt_py(python)}.0",
+           "implementation_name": "cpython", "platform_python_implementation": "CPython"}
+
+    def applies(req, extras=("",)) -> bool:
+        return req.marker is None or any(req.marker.evaluate({**env, "extra": extra}) for extra in extras)
+
+    found: set[str] = set()
+    mlx_extras: set[str] | None = None
+    for text in own_requires:
+        req = requirement(text)
+        name = _normalise(req.name)
+        if (name == "mlx" or name in MLX_LIBRARIES) and applies(req):
+            found.add(name)
+            if name == "mlx":
+                mlx_extras = (mlx_extras or set()) | set(req.extras)
+    if mlx_extras is not None:
+        for text in mlx_requires:
+            req = requirement(text)
+            if applies(req, ("", *sorted(mlx_extras))):
+                found.add(_normalise(req.name))
+    return found
+
+
+def check_mlx_requirements(pins: Pins, plat: Platform, pythons) -> None:
+    """A ``pip install`` of our wheel must pull exactly mlx and ``plat.mlx_library`` there."""
+    if _requirement_class() is None:
+        log("  (packaging is not installed: the Requires-Dist check of MLX is skipped)")
+        return
+    own = tomllib.loads(PYPROJECT.read_text())["project"].get("dependencies", [])
+    want = {"mlx", _normalise(plat.mlx_library)}
+    for python in pythons:
+        tag = _py_tag(python)
+        mlx_wheel = WHEELS_DIR / f"mlx-{pins.bundled['mlx']}-{tag}-{tag}-{plat.mlx_tag}.whl"
+        got = mlx_distributions(plat, python, own, wheel_requires_dist(mlx_wheel))
+        if got != want:
+            raise PackagingError(
+                f"on {plat.name} (Python {_fmt_py(python)}) `pip install {pins.own_name}` would install "
+                f"{sorted(got) or 'no MLX'} (from the markers of [project].dependencies in {PYPROJECT.name} and "
+                f"{mlx_wheel.name}'s Requires-Dist), but the zip bundles {sorted(want)}: fix the markers, "
+                "or Platform.mlx_library in addon/package.py"
+            )
+    log(f"  Requires-Dist: pip install {pins.own_name} pulls mlx and {plat.mlx_library} on {plat.name}")
 
 
 # ------------------------------------------------------------------ our own wheel
@@ -434,23 +653,31 @@ def _newest_source_mtime() -> float:
     return newest
 
 
-def build_own_wheel(pins: Pins, plat: Platform, python: tuple[int, int], *, rebuild: bool) -> Path:
-    filename = f"{pins.own_name}-{pins.own_version}-{_py_tag(python)}-{_py_tag(python)}-{plat.own_tag}.whl"
+def build_own_wheel(pins: Pins, plat: Platform, python: tuple[int, int], *, rebuild: bool,
+                    reuse: bool = False) -> Path:
+    """Our compiled wheel (with ``mlx3d._core``) for this machine's platform and this Python.
+
+    One in ``wheels/`` is reused when newer than the sources, or with ``reuse`` whatever its age.
+    """
+    filename = compiled_wheel_name(pins, plat, python)
     target = WHEELS_DIR / filename
-    if not rebuild and _valid_zip(target) and target.stat().st_mtime >= _newest_source_mtime():
-        log(f"  have {filename} (newer than the sources)")
-        return target
+    if not rebuild and _valid_zip(target):
+        if target.stat().st_mtime >= _newest_source_mtime():
+            log(f"  have {filename} (newer than the sources)")
+            return target
+        if reuse:
+            log(f"  have {filename} (older than the sources, reused as asked)")
+            return target
     exe = build_interpreter(pins, python)
     out = WORK_DIR / f"out-{_py_tag(python)}"
     shutil.rmtree(out, ignore_errors=True)
     out.mkdir(parents=True)
     build_dir = WORK_DIR / f"cmake-{_py_tag(python)}-{plat.own_tag}"
-    env = {**os.environ, **dict(plat.build_env)}
     log(f"  building {filename} with {exe}")
     start = time.perf_counter()
     _run([exe, "-m", "pip", "wheel", "--quiet", "--no-deps", "--no-build-isolation",
           "--config-settings", f"build-dir={build_dir}", "--wheel-dir", out, ROOT],
-         what=f"building the {_py_tag(python)} wheel", env=env, cwd=ROOT, capture=True)
+         what=f"building the {_py_tag(python)} wheel", cwd=ROOT, capture=True)
     built = sorted(out.glob("*.whl"))
     if [p.name for p in built] != [filename]:
         raise PackagingError(f"building the {_py_tag(python)} wheel gave {[p.name for p in built]}, not {filename}")
@@ -505,6 +732,165 @@ def check_own_wheel(wheel: Path, exe: str) -> None:
     log(f"  checked {wheel.name}: mlx3d._core loads with MLX and takes mx.array")
 
 
+# ------------------------------------------------------------ our pure wheel
+def _pure_metadata(project: dict) -> str:
+    """METADATA (core metadata 2.1) of the pure wheel, from ``[project]``."""
+    unknown = sorted(set(project) - _PURE_METADATA_KEYS)
+    if unknown:
+        raise PackagingError(
+            f"{PYPROJECT.name}: [project] has {', '.join(unknown)}, which the pure wheel's METADATA does not "
+            "carry yet: add it to _pure_metadata in addon/package.py"
+        )
+    lines = ["Metadata-Version: 2.1", f"Name: {project['name']}", f"Version: {project['version']}"]
+    if project.get("description"):
+        lines.append(f"Summary: {project['description']}")
+    if project.get("keywords"):
+        lines.append(f"Keywords: {','.join(project['keywords'])}")
+    for label, url in project.get("urls", {}).items():
+        lines.append(f"Project-URL: {label}, {url}")
+    lines += [f"Classifier: {c}" for c in project.get("classifiers", [])]
+    if project.get("requires-python"):
+        lines.append(f"Requires-Python: {project['requires-python']}")
+    lines += [f"Requires-Dist: {r}" for r in project.get("dependencies", [])]
+    for extra, requirements in project.get("optional-dependencies", {}).items():
+        lines.append(f"Provides-Extra: {extra}")
+        for requirement in requirements:
+            spec, _, marker = requirement.partition(";")
+            marker = f"({marker.strip()}) and extra == \"{extra}\"" if marker.strip() else f"extra == \"{extra}\""
+            lines.append(f"Requires-Dist: {spec.strip()}; {marker}")
+    return "\n".join(lines) + "\n"
+
+
+def _pure_entry_points(project: dict) -> str | None:
+    groups = {"console_scripts": project.get("scripts", {}), "gui_scripts": project.get("gui-scripts", {}),
+              **project.get("entry-points", {})}
+    blocks = [f"[{group}]\n" + "".join(f"{k} = {v}\n" for k, v in entries.items())
+              for group, entries in groups.items() if entries]
+    return "\n".join(blocks) if blocks else None
+
+
+def _excluded(archive_name: str, patterns) -> bool:
+    """``wheel.exclude`` globs (``**`` as any depth) against a path in the wheel."""
+    for pattern in patterns:
+        if pattern.endswith("/**") and archive_name.startswith(pattern[:-2]):
+            return True
+        if fnmatch.fnmatchcase(archive_name, pattern.replace("**/", "*").replace("**", "*")):
+            return True
+    return False
+
+
+def pure_wheel_files() -> dict[str, Path]:
+    """Path in the pure wheel -> source file, as scikit-build-core packages ``mlx3d`` (without ``_core``)."""
+    wheel_config = tomllib.loads(PYPROJECT.read_text()).get("tool", {}).get("scikit-build", {}).get("wheel", {})
+    packages, excludes = wheel_config.get("packages"), wheel_config.get("exclude", [])
+    if not packages:
+        raise PackagingError(f"{PYPROJECT.name}: no [tool.scikit-build] wheel.packages")
+    files: dict[str, Path] = {}
+    for package in packages:
+        source_dir = ROOT / package
+        if not source_dir.is_dir():
+            raise PackagingError(f"{PYPROJECT.name}: wheel.packages names {package}, which is not a directory")
+        for path in sorted(source_dir.rglob("*")):
+            rel = path.relative_to(source_dir)
+            if not path.is_file() or "__pycache__" in rel.parts or path.suffix in _NOT_PACKAGED_SUFFIXES:
+                continue
+            name = f"{source_dir.name}/{rel.as_posix()}"
+            if not _excluded(name, excludes):
+                files[name] = path
+    for source, name in PURE_WHEEL_EXTRA_FILES:
+        if not (ROOT / source).is_file():
+            raise PackagingError(f"the pure wheel needs {source}, which does not exist")
+        files[name] = ROOT / source
+    return dict(sorted(files.items()))
+
+
+def _zip_entry(zf: zipfile.ZipFile, name: str, data: bytes) -> str:
+    """Writes one file with a fixed timestamp; returns its RECORD line."""
+    info = zipfile.ZipInfo(name, date_time=(1980, 1, 1, 0, 0, 0))
+    info.external_attr = 0o644 << 16
+    info.compress_type = zipfile.ZIP_DEFLATED
+    zf.writestr(info, data)
+    digest = base64.urlsafe_b64encode(hashlib.sha256(data).digest()).rstrip(b"=").decode()
+    return f"{name},sha256={digest},{len(data)}"
+
+
+def write_pure_wheel(pins: Pins, path: Path) -> None:
+    """Writes our ``py3-none-any`` wheel (no ``_core``, no compiler) to ``path``."""
+    project = tomllib.loads(PYPROJECT.read_text())["project"]
+    dist_info = f"{pins.own_name}-{pins.own_version}.dist-info"
+    meta = {
+        "METADATA": _pure_metadata(project),
+        "WHEEL": "Wheel-Version: 1.0\nGenerator: mlx3d addon/package.py\nRoot-Is-Purelib: true\nTag: py3-none-any\n",
+    }
+    if (entry_points := _pure_entry_points(project)) is not None:
+        meta["entry_points.txt"] = entry_points
+    with zipfile.ZipFile(path, "w") as zf:
+        record = [_zip_entry(zf, name, source.read_bytes()) for name, source in pure_wheel_files().items()]
+        record += [_zip_entry(zf, f"{dist_info}/{name}", text.encode()) for name, text in meta.items()]
+        record.append(f"{dist_info}/RECORD,,")
+        zf.writestr(zipfile.ZipInfo(f"{dist_info}/RECORD", date_time=(1980, 1, 1, 0, 0, 0)),
+                    "\n".join(record) + "\n", compress_type=zipfile.ZIP_DEFLATED)
+
+
+def build_pure_wheel(pins: Pins) -> Path:
+    """Our pure-Python wheel in ``wheels/``, rewritten only when its bytes change; checked once per process."""
+    target = WHEELS_DIR / pure_wheel_name(pins)
+    WHEELS_DIR.mkdir(exist_ok=True)
+    start = time.perf_counter()
+    with tempfile.TemporaryDirectory(dir=WHEELS_DIR, prefix=".pure-") as tmp:
+        built = Path(tmp) / target.name
+        write_pure_wheel(pins, built)
+        if _valid_zip(target) and target.read_bytes() == built.read_bytes():
+            log(f"  have {target.name} (the same bytes as built from the sources)")
+        else:
+            check_pure_wheel(built)
+            os.replace(built, target)
+            _checked_pure_wheels.add(target)
+            log(f"  built {target.name} ({_mb(target)}, {time.perf_counter() - start:.1f} s)")
+    if target not in _checked_pure_wheels:
+        check_pure_wheel(target)
+    return target
+
+
+_checked_pure_wheels: set[Path] = set()
+
+_PURE_CHECK = r"""
+import importlib.util, os, sys
+wheel_dir, site_dir, header_path = sys.argv[1:4]
+sys.path.insert(0, wheel_dir)
+sys.path.append(site_dir)
+import mlx3d
+assert mlx3d.__file__.startswith(wheel_dir), mlx3d.__file__
+assert importlib.util.find_spec("mlx3d._core") is None, "the pure wheel holds mlx3d._core"
+from mlx3d.render import raster_metal
+assert raster_metal.__file__.startswith(wheel_dir), raster_metal.__file__
+with open(header_path, encoding="utf-8") as f:
+    assert raster_metal.kernel_header() == f.read(), "kernel_header() is not raster_math.h"
+print("ok", os.path.join(os.path.dirname(raster_metal.__file__), "raster_math.h"))
+"""
+
+
+def check_pure_wheel(wheel: Path) -> None:
+    """Imports ``mlx3d`` from the pure wheel alone (next to the running interpreter's MLX) in ``python -I -S``."""
+    if importlib.util.find_spec("mlx") is None:
+        log(f"  (no mlx in {sys.executable}: the import check of {wheel.name} is skipped)")
+        return
+    import sysconfig
+
+    site_dir = sysconfig.get_paths()["platlib"]
+    header = ROOT / PURE_WHEEL_EXTRA_FILES[0][0]
+    with tempfile.TemporaryDirectory(prefix="mlx3d-wheel-check-") as tmp:
+        with zipfile.ZipFile(wheel) as zf:
+            zf.extractall(tmp)
+        result = subprocess.run([sys.executable, "-I", "-S", "-c", _PURE_CHECK, tmp, site_dir, header], cwd=tmp,
+                                env={**os.environ, "MLX3D_NO_CORE": "1"}, capture_output=True, text=True)
+    if result.returncode != 0:
+        raise PackagingError(f"{wheel.name}: importing mlx3d from the pure wheel failed:\n"
+                             f"{(result.stdout + result.stderr).strip()}")
+    _checked_pure_wheels.add(wheel)
+    log(f"  checked {wheel.name}: mlx3d imports without _core, kernel_header() reads raster_math.h")
+
+
 # --------------------------------------------------------------------------- build
 def find_blender_ext(explicit: str | None = None) -> list[str]:
     """Command prefix that runs Blender's extension CLI (``blender_ext.py``)."""
@@ -529,10 +915,13 @@ def find_blender_ext(explicit: str | None = None) -> list[str]:
 
 
 def stage(platform_name: str, wheels: list[Wheel]) -> Path:
-    """A source tree with only what the zip holds, and a manifest for this platform."""
-    stage_dir = WORK_DIR / f"stage-{platform_name}"
-    shutil.rmtree(stage_dir, ignore_errors=True)
-    (stage_dir / "wheels").mkdir(parents=True)
+    """A source tree with only what the zip holds, and a manifest for this platform.
+
+    A new directory each time (builds running side by side do not share one); the caller removes it.
+    """
+    WORK_DIR.mkdir(parents=True, exist_ok=True)
+    stage_dir = Path(tempfile.mkdtemp(prefix=f"stage-{platform_name}-", dir=WORK_DIR))
+    (stage_dir / "wheels").mkdir()
     text = MANIFEST.read_text()
     text = replace_toml_list(text, "platforms", [platform_name], source=MANIFEST.name)
     text = replace_toml_list(text, "wheels", manifest_wheel_paths(wheels), source=MANIFEST.name)
@@ -552,8 +941,15 @@ def stage(platform_name: str, wheels: list[Wheel]) -> Path:
 
 
 def build(platform_name: str | None = None, pythons=DEFAULT_PYTHONS, out_dir: Path | str = DEFAULT_OUT, *,
-          rebuild: bool = False, update_manifest: bool = True, blender_ext: str | None = None) -> BuildResult:
-    """Builds the extension zip for one platform; returns its path, size and wheels."""
+          rebuild: bool = False, update_manifest: bool = True, blender_ext: str | None = None,
+          reuse_compiled: bool = False) -> BuildResult:
+    """Builds the extension zip for one platform; returns its path, size, wheels and build time.
+
+    ``update_manifest=False`` leaves the repository's ``blender_manifest.toml`` as it
+    is; ``reuse_compiled=True`` takes compiled wheels already in ``wheels/`` even
+    when they are older than the sources (a packaging check that does not need
+    the latest ``_core``).
+    """
     start = time.perf_counter()
     host = host_platform()
     platform_name = platform_name or host
@@ -568,18 +964,21 @@ def build(platform_name: str | None = None, pythons=DEFAULT_PYTHONS, out_dir: Pa
     log(f"  {pins.own_name} {pins.own_version}; bundled: "
         + ", ".join(f"{k}=={v}" for k, v in sorted(pins.bundled.items())) + f", {plat.mlx_library}=={pins.bundled['mlx']}")
     if sync_manifest(pins, write=update_manifest):
-        log(f"  {MANIFEST.name} wheels list is up to date")
+        log(f"  {MANIFEST.name} platforms and wheels lists are up to date")
     wheels = expected_wheels(pins, [platform_name], pythons)
 
     log("2/6 third-party wheels")
     download_wheels(wheels, pythons)
+    check_mlx_requirements(pins, plat, pythons)
 
     log("3/6 mlx3d_splat wheels")
-    if platform_name == host:
+    if not plat.compiled:
+        build_pure_wheel(pins)
+    elif platform_name == host:
         for python in pythons:
-            build_own_wheel(pins, plat, python, rebuild=rebuild)
+            build_own_wheel(pins, plat, python, rebuild=rebuild, reuse=reuse_compiled)
     else:
-        log(f"  this machine is not {platform_name}: using the mlx3d_splat wheels already in wheels/")
+        log(f"  this machine is not {platform_name}: using the compiled mlx3d_splat wheels already in wheels/")
 
     log("4/6 checking the wheels the manifest lists")
     missing = [w.filename for w in wheels if not _valid_zip(WHEELS_DIR / w.filename)]
@@ -591,10 +990,13 @@ def build(platform_name: str | None = None, pythons=DEFAULT_PYTHONS, out_dir: Pa
     log("5/6 blender_ext.py build")
     cli = find_blender_ext(blender_ext)
     stage_dir = stage(platform_name, wheels)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    _run([*cli, "build", "--source-dir", stage_dir, "--output-dir", out_dir, "--split-platforms"],
-         what="blender_ext.py build", capture=True)
-    manifest = tomllib.loads((stage_dir / MANIFEST.name).read_text())
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        _run([*cli, "build", "--source-dir", stage_dir, "--output-dir", out_dir, "--split-platforms"],
+             what="blender_ext.py build", capture=True)
+        manifest = tomllib.loads((stage_dir / MANIFEST.name).read_text())
+    finally:
+        shutil.rmtree(stage_dir, ignore_errors=True)
     zip_path = out_dir / f"{manifest['id']}-{manifest['version']}-{platform_name.replace('-', '_')}.zip"
     if not zip_path.is_file():
         raise PackagingError(f"blender_ext.py build did not write {zip_path}")
@@ -602,13 +1004,27 @@ def build(platform_name: str | None = None, pythons=DEFAULT_PYTHONS, out_dir: Pa
 
     with zipfile.ZipFile(zip_path) as zf:
         inside = sorted(n.split("/", 1)[1] for n in zf.namelist() if n.startswith("wheels/") and n.endswith(".whl"))
+        zipped = tomllib.loads(zf.read(MANIFEST.name).decode())
     if inside != sorted(w.filename for w in wheels):
         raise PackagingError(f"{zip_path.name} holds wheels {inside}, expected {[w.filename for w in wheels]}")
-    result = BuildResult(platform_name, zip_path, zip_path.stat().st_size, inside)
-    log(f"6/6 {zip_path} ({_mb(zip_path)}, validated, {time.perf_counter() - start:.1f} s)")
+    if zipped.get("platforms") != [platform_name] or zipped.get("wheels") != manifest_wheel_paths(wheels):
+        raise PackagingError(f"{zip_path.name}: its manifest names platforms {zipped.get('platforms')} and wheels "
+                             f"{zipped.get('wheels')}, not [{platform_name!r}] and the wheels inside")
+    seconds = time.perf_counter() - start
+    result = BuildResult(platform_name, zip_path, zip_path.stat().st_size, inside, seconds)
+    log(f"6/6 {zip_path} ({_mb(zip_path)}, validated, {seconds:.1f} s)")
     for name in inside:
         log(f"  wheels/{name} ({_mb(WHEELS_DIR / name)})")
     return result
+
+
+def build_all(platform_names=None, pythons=DEFAULT_PYTHONS, out_dir: Path | str = DEFAULT_OUT,
+              **options) -> list[BuildResult]:
+    """Builds the zips of several platforms (default: this machine's) one after the other."""
+    results = [build(name, pythons, out_dir, **options) for name in (platform_names or [None])]
+    if len(results) > 1:
+        log("built " + ", ".join(f"{r.zip_path.name} ({r.size / 1e6:.1f} MB, {r.seconds:.1f} s)" for r in results))
+    return results
 
 
 def _mb(path: Path) -> str:
@@ -617,22 +1033,25 @@ def _mb(path: Path) -> str:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="addon/package.py", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--platform", choices=sorted(PLATFORMS), default=None,
-                        help="Blender platform to package (default: this machine's)")
+    parser.add_argument("--platform", default=None,
+                        help=f"Blender platform(s) to package, comma-separated: {', '.join(PLATFORMS)}, "
+                             "or all (default: this machine's)")
     parser.add_argument("--python", default=",".join(map(_fmt_py, DEFAULT_PYTHONS)),
                         help="Python versions to ship wheels for (default: %(default)s)")
     parser.add_argument("--out", default=str(DEFAULT_OUT), help="output directory (default: dist/)")
-    parser.add_argument("--rebuild", action="store_true", help="rebuild the mlx3d_splat wheels even when up to date")
+    parser.add_argument("--rebuild", action="store_true",
+                        help="rebuild the compiled mlx3d_splat wheels even when up to date")
     parser.add_argument("--blender-ext", default=None, help="path of Blender's blender_ext.py")
     args = parser.parse_args(argv)
     try:
         pythons = parse_pythons(args.python)
         if args.platform is None and host_platform() is None:
             raise PackagingError(
-                f"this machine ({_platform.system()} {_platform.machine()}) builds no supported platform; "
-                f"pass --platform with wheels already in wheels/"
+                f"this machine ({_platform.system()} {_platform.machine()}) is none of the supported platforms; "
+                f"pass --platform ({', '.join(PLATFORMS)} or all)"
             )
-        build(args.platform, pythons, args.out, rebuild=args.rebuild, blender_ext=args.blender_ext)
+        platforms = parse_platforms(args.platform) if args.platform is not None else None
+        build_all(platforms, pythons, args.out, rebuild=args.rebuild, blender_ext=args.blender_ext)
     except PackagingError as exc:
         print(f"addon/package.py: error: {exc}", file=sys.stderr)
         return 1

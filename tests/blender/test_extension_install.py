@@ -30,7 +30,7 @@ def test_manifest_fields():
     assert m["id"] == EXTENSION_ID and m["type"] == "add-on"
     assert m["license"] == ["SPDX:MIT"]
     assert m["blender_version_min"] == "4.5.0"
-    assert m["platforms"] == ["linux-x64", "macos-arm64"]
+    assert m["platforms"] == ["linux-x64", "macos-arm64", "windows-x64", "linux-arm64"]
     assert len(m["tagline"]) <= 64 and not m["tagline"].endswith((".", "!", "?"))
     reason = m["permissions"]["files"]
     assert len(reason) <= 64 and not reason.endswith(".")
@@ -45,10 +45,11 @@ def test_manifest_wheels_follow_the_pins(package_script):
     names = " ".join(want)
     for py in ("cp311", "cp313"):
         assert f"mlx-{pins.bundled['mlx']}-{py}-{py}-manylinux_2_35_x86_64.whl" in names
-        assert f"mlx3d_splat-{pins.own_version}-{py}-{py}-linux_x86_64.whl" in names
-        assert f"-{py}-{py}-macosx_14_0_arm64.whl" in names
+        assert f"mlx3d_splat-{pins.own_version}-{py}-{py}-linux_x86_64.whl" in names  # with mlx3d._core
+        assert f"mlx-{pins.bundled['mlx']}-{py}-{py}-macosx_14_0_arm64.whl" in names
         assert f"pillow-{pins.bundled['pillow']}-{py}-{py}-manylinux_2_27_x86_64.manylinux_2_28_x86_64.whl" in names
         assert f"pillow-{pins.bundled['pillow']}-{py}-{py}-macosx_11_0_arm64.whl" in names
+    assert f"mlx3d_splat-{pins.own_version}-py3-none-any.whl" in names  # pure Python: macOS, Windows, Linux arm64
     assert "numpy" not in names
 
 

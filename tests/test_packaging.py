@@ -1,0 +1,399 @@
+"""The extension zips of every platform (``addon/package.py --platform all``).
+
+Builds the four zips once per module into a temporary folder (the wheels come
+from ``wheels/``, downloaded from the registry on first use; the compiled
+linux-x64 wheels already there are reused even when older than the sources,
+and are built only when missing) and checks each: Blender's validator accepts
+it, its manifest names exactly its platform and the wheels inside, and the
+wheels are one ``mlx`` per Python (3.11, 3.13), MLX's library wheel, ours
+(compiled with ``_core`` per Python on linux-x64, the pure-Python one with
+``raster_math.h`` elsewhere), ``pillow`` per Python and ``plyfile``.
+
+The expected tags below are written out here, not taken from package.py, so a
+change there has to agree with what the registry publishes. The pure wheel is
+also installed with pip into an empty folder and imported in a clean
+interpreter, and pip's resolver (with each platform's environment markers) must
+pull exactly mlx and its library wheel from our wheel's Requires-Dist.
+
+Installing the linux-x64 zip into Blender and using it is
+``tests/blender/test_extension_install.py``'s part.
+"""
+
+from __future__ import annotations
+
+import base64
+import csv
+import hashlib
+import importlib.util
+import io
+import json
+import os
+import subprocess
+import sys
+import tomllib
+import zipfile
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PYTHONS = ("cp311", "cp313")
+HEADER = ROOT / "mlx3d" / "csrc" / "raster_math.h"
+
+# Per Blender platform: the platform tag of mlx 0.32.4's wheels, MLX's library
+# wheel there, pillow 13.0.0's tag, the tags pip may pick for that platform, and
+# its environment markers.
+EXPECTED = {
+    "linux-x64": {
+        "mlx": "manylinux_2_35_x86_64",
+        "library": "mlx_cpu",
+        "pillow": "manylinux_2_27_x86_64.manylinux_2_28_x86_64",
+        "pip_tags": ("manylinux_2_35_x86_64", "manylinux_2_28_x86_64", "manylinux_2_17_x86_64"),
+        "markers": {"sys_platform": "linux", "platform_system": "Linux", "platform_machine": "x86_64",
+                    "os_name": "posix"},
+    },
+    "macos-arm64": {
+        "mlx": "macosx_14_0_arm64",
+        "library": "mlx_metal",
+        "pillow": "macosx_11_0_arm64",
+        "pip_tags": ("macosx_14_0_arm64",),
+        "markers": {"sys_platform": "darwin", "platform_system": "Darwin", "platform_machine": "arm64",
+                    "os_name": "posix"},
+    },
+    "windows-x64": {
+        "mlx": "win_amd64",
+        "library": "mlx_cpu",
+        "pillow": "win_amd64",
+        "pip_tags": ("win_amd64",),
+        "markers": {"sys_platform": "win32", "platform_system": "Windows", "platform_machine": "AMD64",
+                    "os_name": "nt"},
+    },
+    "linux-arm64": {
+        "mlx": "manylinux_2_35_aarch64",
+        "library": "mlx_cpu",
+        "pillow": "manylinux_2_27_aarch64.manylinux_2_28_aarch64",
+        "pip_tags": ("manylinux_2_35_aarch64", "manylinux_2_28_aarch64", "manylinux_2_17_aarch64"),
+        "markers": {"sys_platform": "linux", "platform_system": "Linux", "platform_machine": "aarch64",
+                    "os_name": "posix"},
+    },
+}
+PLATFORMS = tuple(EXPECTED)
+
+
+def load_package_script():
+    """``addon/package.py`` as a module (the same module object tests/blender/conftest.py loads)."""
+    name = "mlx3d_extension_package"
+    if name in sys.modules:
+        return sys.modules[name]
+    spec = importlib.util.spec_from_file_location(name, ROOT / "addon" / "package.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def package():
+    return load_package_script()
+
+
+@pytest.fixture(scope="module")
+def pins(package):
+    return package.read_pins()
+
+
+@pytest.fixture(scope="module")
+def blender_ext(package):
+    try:
+        return package.find_blender_ext()
+    except package.PackagingError as exc:
+        pytest.skip(str(exc))
+
+
+@pytest.fixture(scope="module")
+def zips(package, blender_ext, tmp_path_factory):
+    """Platform name -> BuildResult, each zip built on first use."""
+    out = tmp_path_factory.mktemp("extension-zips")
+    built = {}
+
+    def get(name):
+        if name not in built:
+            if name == "linux-x64" and package.host_platform() != "linux-x64":
+                pins = package.read_pins()
+                plat = package.PLATFORMS[name]
+                missing = [package.compiled_wheel_name(pins, plat, (3, int(py[3:]))) for py in PYTHONS]
+                missing = [w for w in missing if not (package.WHEELS_DIR / w).is_file()]
+                if missing:
+                    pytest.skip(f"the compiled linux-x64 wheels are built on linux-x64 only; missing {missing}")
+            built[name] = package.build(name, package.DEFAULT_PYTHONS, out, update_manifest=False,
+                                        reuse_compiled=True)
+            result = built[name]
+            print(f"\n{result.zip_path.name}: {result.size / 1e6:.1f} MB, built in {result.seconds:.1f} s")
+        return built[name]
+
+    return get
+
+
+def expected_wheels(pins, platform):
+    e = EXPECTED[platform]
+    mlx, own = pins.bundled["mlx"], f"{pins.own_name}-{pins.own_version}"
+    names = {f"{e['library']}-{mlx}-py3-none-{e['mlx']}.whl", f"plyfile-{pins.bundled['plyfile']}-py3-none-any.whl"}
+    for py in PYTHONS:
+        names.add(f"mlx-{mlx}-{py}-{py}-{e['mlx']}.whl")
+        names.add(f"pillow-{pins.bundled['pillow']}-{py}-{py}-{e['pillow']}.whl")
+        if platform == "linux-x64":
+            names.add(f"{own}-{py}-{py}-linux_x86_64.whl")
+    if platform != "linux-x64":
+        names.add(f"{own}-py3-none-any.whl")
+    return names
+
+
+def nested_wheel(zip_path, name) -> zipfile.ZipFile:
+    with zipfile.ZipFile(zip_path) as zf:
+        return zipfile.ZipFile(io.BytesIO(zf.read(f"wheels/{name}")))
+
+
+# ------------------------------------------------------------------ every zip
+@pytest.mark.parametrize("platform", PLATFORMS)
+def test_zip_validates(platform, zips, blender_ext):
+    result = subprocess.run([*blender_ext, "validate", str(zips(platform).zip_path)], capture_output=True, text=True)
+    assert result.returncode == 0, result.stdout + result.stderr
+
+
+@pytest.mark.parametrize("platform", PLATFORMS)
+def test_zip_holds_its_platforms_wheels_and_names_them(platform, zips, pins):
+    result = zips(platform)
+    assert result.zip_path.name == f"{pins.own_name}-{pins.own_version}-{platform.replace('-', '_')}.zip"
+    with zipfile.ZipFile(result.zip_path) as zf:
+        names = zf.namelist()
+        manifest = tomllib.loads(zf.read("blender_manifest.toml").decode())
+    wheels = sorted(n.removeprefix("wheels/") for n in names if n.startswith("wheels/"))
+    assert set(wheels) == expected_wheels(pins, platform)
+    assert manifest["platforms"] == [platform]
+    assert manifest["wheels"] == [f"./wheels/{w}" for w in wheels]
+    assert sorted(result.wheels) == wheels
+    # Nothing else but the add-on: no sources of the core, no tooling.
+    assert {n.split("/", 1)[0] for n in names} == {"blender_manifest.toml", "__init__.py", "addon", "wheels"}
+    assert "addon/package.py" not in names and not any("__pycache__" in n for n in names)
+
+
+@pytest.mark.parametrize("platform", PLATFORMS)
+def test_one_mlx_and_one_of_our_wheels_per_python(platform, zips, pins):
+    wheels = zips(platform).wheels
+    for py in PYTHONS:
+        mlx = [w for w in wheels if w.startswith("mlx-") and (f"-{py}-" in w)]
+        own = [w for w in wheels if w.startswith(f"{pins.own_name}-") and (f"-{py}-" in w or "-py3-none-any" in w)]
+        assert len(mlx) == 1 and len(own) == 1, (py, wheels)
+    e = EXPECTED[platform]
+    libraries = [w for w in wheels if w.startswith(("mlx_cpu-", "mlx_metal-"))]
+    assert libraries == [f"{e['library']}-{pins.bundled['mlx']}-py3-none-{e['mlx']}.whl"]
+
+
+@pytest.mark.parametrize("platform", PLATFORMS)
+def test_core_only_on_linux_x64_and_raster_math_everywhere(platform, zips, pins):
+    result = zips(platform)
+    own = [w for w in result.wheels if w.startswith(f"{pins.own_name}-")]
+    for name in own:
+        files = nested_wheel(result.zip_path, name).namelist()
+        core = [f for f in files if f.startswith("mlx3d/_core")]
+        if platform == "linux-x64":
+            py = name.split("-")[2]
+            assert core == [f"mlx3d/_core.cpython-{py[2:]}-x86_64-linux-gnu.so"], (name, core)
+        else:
+            assert name.endswith("-py3-none-any.whl")
+            assert core == [] and not any("_core" in f or f.endswith((".so", ".pyd", ".dylib")) for f in files)
+        assert "mlx3d/render/raster_math.h" in files, name
+        assert not any(f.startswith("mlx3d/csrc/") for f in files), name
+
+
+# ------------------------------------------------------------------ the pure wheel
+@pytest.fixture(scope="module")
+def pure_wheel(zips, package, pins) -> Path:
+    zips("windows-x64")  # builds it
+    path = package.WHEELS_DIR / package.pure_wheel_name(pins)
+    assert path.is_file()
+    return path
+
+
+def test_pure_wheel_metadata_and_record(pure_wheel, pins):
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    with zipfile.ZipFile(pure_wheel) as zf:
+        dist_info = f"{pins.own_name}-{pins.own_version}.dist-info"
+        wheel_meta = zf.read(f"{dist_info}/WHEEL").decode()
+        metadata = zf.read(f"{dist_info}/METADATA").decode()
+        entry_points = zf.read(f"{dist_info}/entry_points.txt").decode()
+        record = list(csv.reader(io.StringIO(zf.read(f"{dist_info}/RECORD").decode())))
+        contents = {n: zf.read(n) for n in zf.namelist()}
+    assert "Root-Is-Purelib: true" in wheel_meta and "Tag: py3-none-any" in wheel_meta
+    assert f"Name: {project['name']}\n" in metadata and f"Version: {project['version']}\n" in metadata
+    requires = [line.removeprefix("Requires-Dist: ") for line in metadata.splitlines()
+                if line.startswith("Requires-Dist: ") and "extra ==" not in line]
+    assert requires == project["dependencies"]
+    assert "[console_scripts]\nmlx3d = mlx3d.cli:main" in entry_points
+    # RECORD lists every file once, with its hash and size.
+    assert sorted(row[0] for row in record) == sorted(contents)
+    for path, digest, size in record:
+        if path.endswith("/RECORD"):
+            continue
+        data = contents[path]
+        expected = base64.urlsafe_b64encode(hashlib.sha256(data).digest()).rstrip(b"=").decode()
+        assert digest == f"sha256={expected}" and int(size) == len(data), path
+    assert contents["mlx3d/render/raster_math.h"] == HEADER.read_bytes()
+
+
+def test_pure_wheel_has_the_compiled_wheels_files(pure_wheel, package, pins):
+    """The pure wheel is the compiled one less ``_core``: same files, same Requires-Dist."""
+    host = package.host_platform()
+    if host is None or not package.PLATFORMS[host].compiled:
+        pytest.skip("no compiled wheel is built on this machine")
+    py = (3, int(PYTHONS[0][3:]))
+    compiled = package.WHEELS_DIR / package.compiled_wheel_name(pins, package.PLATFORMS[host], py)
+    if not compiled.is_file() or compiled.stat().st_mtime < package._newest_source_mtime():
+        pytest.skip(f"{compiled.name} is missing or older than the sources")
+
+    def files(path):
+        with zipfile.ZipFile(path) as zf:
+            return {n for n in zf.namelist() if ".dist-info/" not in n and not n.startswith("mlx3d/_core")}
+
+    def requires(path):  # as packaging writes them (quotes, order of specifiers)
+        return sorted(str(requirement(r)) for r in package.wheel_requires_dist(path))
+
+    requirement = package._requirement_class()
+    assert files(pure_wheel) == files(compiled)
+    assert requires(pure_wheel) == requires(compiled)
+
+
+CLEAN_IMPORT = r"""
+import importlib.util, json, sys
+target, numpy_dir, header = sys.argv[1:4]
+sys.path[:0] = [target]
+sys.path.append(numpy_dir)
+import mlx.core as mx
+import mlx3d
+from mlx3d import native
+from mlx3d.render.raster_metal import kernel_header
+print(json.dumps({
+    "mlx": mx.__file__, "mlx3d": mlx3d.__file__, "core_spec": importlib.util.find_spec("mlx3d._core") is not None,
+    "core_available": native.available(), "header_ok": kernel_header() == open(header, encoding="utf-8").read(),
+    "sum": mx.array([1.0, 2.0, 3.0]).sum().item(),
+}))
+"""
+
+
+def test_pure_wheel_installs_and_imports_in_a_clean_interpreter(pure_wheel, package, pins, zips, tmp_path):
+    """pip installs the pure wheel and this machine's MLX wheels into an empty folder; mlx3d imports from there."""
+    host = package.host_platform()
+    if host is None:
+        pytest.skip("this machine is none of the extension's platforms")
+    zips(host)  # downloads this machine's MLX wheels
+    py = "cp{}{}".format(*sys.version_info[:2])
+    mlx_tag = EXPECTED[host]["mlx"]
+    mlx = pins.bundled["mlx"]
+    wheels = [pure_wheel, package.WHEELS_DIR / f"mlx-{mlx}-{py}-{py}-{mlx_tag}.whl",
+              package.WHEELS_DIR / f"{EXPECTED[host]['library']}-{mlx}-py3-none-{mlx_tag}.whl"]
+    target = tmp_path / "site"
+    subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-index", "--no-deps", "--target",
+                    str(target), *map(str, wheels)], check=True, capture_output=True, text=True)
+    assert (target / "mlx3d" / "render" / "raster_math.h").read_bytes() == HEADER.read_bytes()
+    # numpy alone (Blender ships it): not the venv's site-packages, which would bring its own mlx.
+    import numpy
+
+    numpy_dir = tmp_path / "numpy-only"
+    numpy_dir.mkdir()
+    site = Path(numpy.__file__).resolve().parents[1]
+    for name in ("numpy", "numpy.libs"):
+        if (site / name).exists():
+            (numpy_dir / name).symlink_to(site / name)
+    result = subprocess.run(
+        [sys.executable, "-I", "-S", "-c", CLEAN_IMPORT, str(target), str(numpy_dir), str(HEADER)],
+        cwd=tmp_path, env={**os.environ, "MLX3D_NO_CORE": "1"}, capture_output=True, text=True, timeout=300,
+    )
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    report = json.loads(result.stdout.strip().splitlines()[-1])
+    assert report["mlx3d"].startswith(str(target)) and report["mlx"].startswith(str(target)), report
+    assert report["core_spec"] is False and report["core_available"] is False
+    assert report["header_ok"] is True and report["sum"] == 6.0
+
+
+# ------------------------------------------------------------------ Requires-Dist per platform
+PIP_WITH_MARKERS = r"""
+import json, sys
+from pip._vendor.packaging import markers
+env = json.loads(sys.argv[1])
+default_environment = markers.default_environment
+markers.default_environment = lambda: {**default_environment(), **env}
+from pip._internal.cli.main import main
+sys.exit(main(sys.argv[2:]))
+"""
+
+
+@pytest.fixture(scope="module")
+def pip_resolutions(pure_wheel, package, tmp_path_factory):
+    """Platform -> {name: wheel file} that ``pip install`` of the pure wheel picks there (running Python's version).
+
+    pip evaluates environment markers for the machine it runs on, whatever
+    ``--platform`` says, so each run gets the platform's markers patched in.
+    The four resolutions run side by side.
+    """
+    tmp = tmp_path_factory.mktemp("pip-resolve")
+    version = "{}.{}".format(*sys.version_info[:2])
+    runs = {}
+    for platform, e in EXPECTED.items():
+        cmd = [sys.executable, "-c", PIP_WITH_MARKERS, json.dumps(e["markers"]), "install", "--dry-run",
+               "--ignore-installed", "--quiet", "--only-binary=:all:", "--python-version", version,
+               "--target", str(tmp / f"target-{platform}"), "--report", str(tmp / f"{platform}.json"),
+               "--find-links", str(package.WHEELS_DIR), str(pure_wheel)]
+        for tag in e["pip_tags"]:
+            cmd += ["--platform", tag]
+        runs[platform] = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    resolutions = {}
+    for platform, proc in runs.items():
+        output, _ = proc.communicate(timeout=600)
+        assert proc.returncode == 0, f"{platform}: {output[-3000:]}"
+        report = json.loads((tmp / f"{platform}.json").read_text())
+        resolutions[platform] = {item["metadata"]["name"].replace("-", "_").lower():
+                                 item["download_info"]["url"].rsplit("/", 1)[-1] for item in report["install"]}
+    return resolutions
+
+
+@pytest.mark.parametrize("platform", PLATFORMS)
+def test_pip_install_of_the_pure_wheel_pulls_mlx_and_its_library(platform, pip_resolutions, pins):
+    got = pip_resolutions[platform]
+    e = EXPECTED[platform]
+    py = "cp{}{}".format(*sys.version_info[:2])
+    mlx = pins.bundled["mlx"]
+    assert {n for n in got if n.startswith("mlx") and n != pins.own_name} == {"mlx", e["library"]}, got
+    assert got["mlx"] == f"mlx-{mlx}-{py}-{py}-{e['mlx']}.whl"
+    assert got[e["library"]] == f"{e['library']}-{mlx}-py3-none-{e['mlx']}.whl"
+    assert {"numpy", "plyfile", "pillow", pins.own_name} <= set(got)
+
+
+def test_mlx_check_follows_markers_and_mlx_metadata(package, zips, pins):
+    """package.py's own check: mlx's `cpu` extra adds mlx-cpu on Linux only, so Windows needs its explicit pin."""
+    for platform in ("windows-x64", "linux-arm64", "macos-arm64"):
+        zips(platform)  # downloads the mlx wheels
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    mlx = pins.bundled["mlx"]
+    # What `mlx[cpu]` alone pulls: nothing but mlx on Windows, whose mlx/core.pyd needs mlx-cpu's mlx.dll.
+    extra_only = {"windows-x64": {"mlx"}, "linux-arm64": {"mlx", "mlx_cpu"}, "macos-arm64": {"mlx", "mlx_metal"}}
+    for platform, want in extra_only.items():
+        plat = package.PLATFORMS[platform]
+        mlx_requires = package.wheel_requires_dist(package.WHEELS_DIR / f"mlx-{mlx}-cp311-cp311-{plat.mlx_tag}.whl")
+        assert package.mlx_distributions(plat, (3, 11), project["dependencies"], mlx_requires) == \
+            {"mlx", EXPECTED[platform]["library"]}
+        assert package.mlx_distributions(plat, (3, 11), [f"mlx[cpu]=={mlx}"], mlx_requires) == want
+
+
+# ------------------------------------------------------------------ CLI
+def test_parse_platforms(package):
+    assert package.parse_platforms("all") == PLATFORMS
+    assert package.parse_platforms("windows-x64, linux-x64") == ("linux-x64", "windows-x64")
+    with pytest.raises(package.PackagingError):
+        package.parse_platforms("windows-arm64")
+
+
+def test_manifest_lists_follow_platforms(package, pins):
+    """What `make extension` writes into blender_manifest.toml: every platform, every platform's wheels."""
+    assert list(package.PLATFORMS) == list(PLATFORMS)
+    wheels = {w.filename for w in package.expected_wheels(pins, package.PLATFORMS, package.DEFAULT_PYTHONS)}
+    assert wheels == set().union(*(expected_wheels(pins, p) for p in PLATFORMS))
