@@ -62,7 +62,7 @@ def layer(depth, alpha=1.0, color=PLANE_COLOR):
     return np.asarray(color, np.float32) * alpha[..., None], alpha, depth
 
 
-def render(s, surface, backend="cpu", **kw):
+def render(s, surface, backend="auto", **kw):
     args = [mx.array(s[k]) for k in ("means", "quats", "scales", "opacities")]
     return render_gaussians(camera(), *args, colors=mx.array(s["colors"]), background=BACKGROUND, backend=backend,
                             surface=None if surface is None else Surface(*surface), **kw)
@@ -74,7 +74,8 @@ def oracle(s, surface):
 
 
 def check_against_oracle(s, surface):
-    """CPU kernel and the pure-MLX reference against the float64 oracle; returns the CPU result."""
+    """The default rasterizer (the CPU kernel, or the MLX tiles without mlx3d._core) against the float64 oracle,
+    and the MLX tiles and the pure-MLX reference against it; returns the default's result."""
     depths = np.array(render(s, None)["depths"])
     gap = np.abs(depths[:, None] - np.unique(surface[2][np.isfinite(surface[2])])[None, :])
     assert gap.size == 0 or gap.min() > DEPTH_GAP, "a plane lies too close to a Gaussian's depth for this tolerance"
@@ -84,9 +85,10 @@ def check_against_oracle(s, surface):
     assert out["stages"] == out["plan"].stages
     np.testing.assert_allclose(np.array(out["image"]), image, atol=ORACLE_ATOL)
     np.testing.assert_allclose(np.array(out["alpha"]), alpha, atol=ORACLE_ATOL)
-    ref = render(s, surface, backend="reference")
-    np.testing.assert_allclose(np.array(ref["image"]), np.array(out["image"]), atol=REFERENCE_ATOL)
-    np.testing.assert_allclose(np.array(ref["alpha"]), np.array(out["alpha"]), atol=REFERENCE_ATOL)
+    for backend in ("mlx", "reference"):
+        ref = render(s, surface, backend=backend)
+        np.testing.assert_allclose(np.array(ref["image"]), np.array(out["image"]), atol=REFERENCE_ATOL, err_msg=backend)
+        np.testing.assert_allclose(np.array(ref["alpha"]), np.array(out["alpha"]), atol=REFERENCE_ATOL, err_msg=backend)
     return out
 
 
@@ -199,11 +201,12 @@ def test_surface_without_depth_is_a_background_image(backend):
         np.testing.assert_allclose(np.array(behind[key]), np.array(tested[key]), atol=1e-6, err_msg=key)
 
 
-def test_metal_plan_falls_back_to_the_cpu_kernel():
+@pytest.mark.parametrize("backend", ["metal", "mlx"])
+def test_every_backend_plans_the_depth_test_in_its_own_rasterizer(backend):
     s = scene()
-    plan = plan_render(camera(), colors=s["colors"], backend="metal", surface=Surface(*layer(4.0)))
-    assert plan.stages[-2:] == ("surface_cpu_fallback", "rasterize_rgb+surface_depth_test")
-    plan = plan_render(camera(), colors=s["colors"], backend="metal", surface=Surface(*layer(np.inf)))
+    plan = plan_render(camera(), colors=s["colors"], backend=backend, surface=Surface(*layer(4.0)))
+    assert plan.stages[-2:] == ("bin_tiles", "rasterize_rgb+surface_depth_test")
+    plan = plan_render(camera(), colors=s["colors"], backend=backend, surface=Surface(*layer(np.inf)))
     assert plan.stages[-2:] == ("rasterize_rgb", "surface_behind")
 
 

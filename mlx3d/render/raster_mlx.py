@@ -48,7 +48,7 @@ T_MIN = 1e-4
 BATCH_ELEMENTS = 1 << 21  # (pixel, entry) pairs per batch: about 8 MB per float32 temporary
 
 
-@dataclass
+@dataclass(eq=False)
 class _Tiles:
     """The binning on the host and the pixel layout: tiles of P = tile² pixels, row-major inside a tile."""
 
@@ -66,6 +66,19 @@ class _Tiles:
     @property
     def pixels(self) -> int:
         return self.tile * self.tile
+
+    @functools.lru_cache(maxsize=4)  # noqa: B019 - one grid per render
+    def bounds(self, budget: int) -> list:
+        """(start, size) of the depth batches: each as large as ``budget`` (pixel, entry) pairs allow
+        over the tiles whose range reaches it."""
+        ordered = np.sort(self.counts)
+        out, start, end = [], 0, int(ordered[-1]) if ordered.size else 0
+        while start < end:
+            active = ordered.size - np.searchsorted(ordered, start, side="right")
+            size = int(min(end - start, max(1, budget // (active * self.pixels))))
+            out.append((start, size))
+            start += size
+        return out
 
     def centres(self, tiles: np.ndarray) -> tuple:
         """Pixel centres (x, y) of ``tiles``, each (n, P) float32."""
@@ -114,27 +127,28 @@ def _batch(tiles: np.ndarray, start: int, size: int, grid: _Tiles, flatten_ids: 
 
 
 class _Schedule:
-    """The depth batches of one rasterization (see the module docstring), identical in both passes.
+    """The depth batches of a group of tiles (see the module docstring), identical in both passes.
 
+    The batches' bounds come from the whole binning (``_Tiles.bounds``), not from the group or from which
+    pixels stopped, so the arithmetic (and the result) is the same for any number of groups.
     ``next()`` gives the next ``_Batch`` (None when every tile has left); ``advance(batch, stopped)``
     moves past it given its (n, P) stop flags and returns the (n,) mask of its tiles that stay active.
     """
 
-    def __init__(self, grid: _Tiles, flatten_ids: mx.array, n: int, batch_elements: int):
-        self.grid, self.ids, self.n, self.budget = grid, flatten_ids, n, int(batch_elements)
-        self.tiles = np.flatnonzero(grid.counts > 0)
-        self.start = 0
+    def __init__(self, grid: _Tiles, tiles: np.ndarray, flatten_ids: mx.array, n: int, batch_elements: int):
+        self.grid, self.ids, self.n = grid, flatten_ids, n
+        self.tiles = tiles
+        self.bounds = iter(grid.bounds(int(batch_elements)))
 
     def next(self) -> _Batch | None:
         if self.tiles.size == 0:
             return None
-        remaining = int(self.grid.counts[self.tiles].max()) - self.start
-        size = int(min(remaining, max(1, self.budget // (self.tiles.size * self.grid.pixels))))
-        return _batch(self.tiles, self.start, size, self.grid, self.ids, self.n)
+        start, size = next(self.bounds)
+        return _batch(self.tiles, start, size, self.grid, self.ids, self.n)
 
     def advance(self, batch: _Batch, stopped: mx.array) -> np.ndarray:
-        self.start += batch.size
-        stay = (self.grid.counts[batch.tiles] > self.start) & ~np.asarray(mx.all(stopped, axis=1))
+        end = batch.start + batch.size
+        stay = (self.grid.counts[batch.tiles] > end) & ~np.asarray(mx.all(stopped, axis=1))
         self.tiles = batch.tiles[stay]
         return stay
 
@@ -142,8 +156,7 @@ class _Schedule:
 class _State:
     """Per-pixel fields of the active tiles, (n, P, ...) rows in the schedule's tile order.
 
-    ``keep(stay)`` sets the rows that leave aside; ``image(name, initial)`` assembles a field over
-    every tile, ``initial`` (tiles, P, ...) standing where a tile was never active.
+    ``keep(stay)`` sets the rows that leave aside (``left_tiles``, ``left``).
     """
 
     def __init__(self, grid: _Tiles, tiles: np.ndarray, fields: dict):
@@ -161,11 +174,6 @@ class _State:
         for k, v in self.active.items():
             self.left[k].append(v[leave])
             self.active[k] = v[rows]
-
-    def image(self, name: str, initial: mx.array, width: int, height: int) -> mx.array:
-        if self.left_tiles:
-            initial[mx.array(np.concatenate(self.left_tiles))] = mx.concatenate(self.left[name], axis=0)
-        return self.grid.to_image(initial, width, height)
 
 
 def _gather(batch: _Batch, means2d, conics, opacities) -> tuple:
@@ -230,6 +238,71 @@ def _surface_after_last(s: dict, leaving: np.ndarray) -> None:
     s["T"] = s["T"] * mx.where(at, 1.0 - s["s_alpha"], 1.0)
 
 
+class _Group:
+    """A share of the tiles with its own schedule, per-pixel state and MLX stream."""
+
+    def __init__(self, grid: _Tiles, tiles: np.ndarray, flatten_ids, n: int, budget: int, fields, stream):
+        self.schedule = _Schedule(grid, tiles, flatten_ids, n, budget)
+        self.state = _State(grid, tiles, fields(mx.array(tiles), tiles.size))
+        self.stream = stream
+
+
+def _groups(grid: _Tiles, flatten_ids, n: int, budget: int, fields) -> list:
+    """The tiles with entries dealt to one group per CPU stream (by entry count, so the groups' work is even);
+    ``fields(rows, m)`` gives a group's initial per-pixel state for the tile rows ``rows`` (m tiles)."""
+    tiles = np.flatnonzero(grid.counts > 0)
+    tiles = tiles[np.argsort(-grid.counts[tiles], kind="stable")]
+    streams = _streams()
+    shares = [np.sort(tiles[i :: len(streams)]) for i in range(len(streams))]
+    return [_Group(grid, share, flatten_ids, n, budget, fields, stream) for share, stream in zip(shares, streams) if share.size]
+
+
+def _streams() -> list:
+    """One stream per core on the CPU (MLX runs each operation on one thread; streams run side by side), else the default."""
+    if mx.default_device() != mx.cpu:
+        return [mx.default_stream(mx.default_device())]
+    global _CPU_STREAMS
+    if _CPU_STREAMS is None:
+        from .raster_cpu import get_num_threads
+
+        _CPU_STREAMS = [mx.default_stream(mx.cpu)] + [mx.new_stream(mx.cpu) for _ in range(max(1, get_num_threads()) - 1)]
+    return _CPU_STREAMS
+
+
+_CPU_STREAMS = None
+
+
+def _drive(groups: list, step, after=None) -> None:
+    """Runs ``step(state fields, batch)`` on every group's batches, evaluating the groups' batches together
+    (each on its stream), then ``after(state fields, batch, staying mask)`` before the tiles that leave are set aside."""
+    active = list(groups)
+    while active:
+        running = []
+        for g in active:
+            batch = g.schedule.next()
+            if batch is not None:
+                with mx.stream(g.stream):
+                    step(g.state.active, batch)
+                running.append((g, batch))
+        mx.eval([g.state.active for g, _ in running])
+        for g, _ in running:  # each batch's temporaries are freed once nothing evaluated refers to them
+            g.state.active = dict(zip(g.state.active, _detached(*g.state.active.values())))
+        for g, batch in running:
+            stay = g.schedule.advance(batch, g.state.active["stopped"])
+            if after is not None:
+                after(g.state.active, batch, stay)
+            g.state.keep(stay)
+        active = [g for g, _ in running]
+
+
+def _image(grid: _Tiles, groups: list, name: str, initial: mx.array, width: int, height: int) -> mx.array:
+    """Field ``name`` of every group's tiles as an (H, W, ...) image; ``initial`` (tiles, P, ...) where no tile was active."""
+    tiles = [t for g in groups for t in g.state.left_tiles]
+    if tiles:
+        initial[mx.array(np.concatenate(tiles))] = mx.concatenate([v for g in groups for v in g.state.left[name]], axis=0)
+    return grid.to_image(initial, width, height)
+
+
 def _forward(means2d, conics, features, opacities, flatten_ids, grid: _Tiles, width: int, height: int, budget: int, surface=None):
     """(accum (H,W,C) without background, alpha, last int32, final_T (H,W)).
 
@@ -237,52 +310,47 @@ def _forward(means2d, conics, features, opacities, flatten_ids, grid: _Tiles, wi
     """
     n, channels, P = means2d.shape[0], features.shape[1], grid.pixels
     num_tiles = grid.tiles_x * grid.tiles_y
-    schedule = _Schedule(grid, flatten_ids, n, budget)
-    rows, m = mx.array(schedule.tiles), schedule.tiles.size
-    fields = {"accum": mx.zeros((m, P, channels)), "T": mx.ones((m, P)), "stopped": mx.zeros((m, P), mx.bool_), "last": mx.zeros((m, P), mx.int32)}
-    accum0, T0 = mx.zeros((num_tiles, P, channels)), mx.ones((num_tiles, P))
-    if surface is not None:
-        depths, s_color, s_alpha, s_depth = surface
-        fields.update(passed=mx.zeros((m, P), mx.bool_), s_color=s_color[rows], s_alpha=s_alpha[rows], s_depth=s_depth[rows])
-        accum0, T0 = s_color, 1.0 - s_alpha  # tiles without entries: the surface alone
-    state = _State(grid, schedule.tiles, fields)
-    while (batch := schedule.next()) is not None:
-        s = state.active
+
+    def fields(rows, m):
+        out = {"accum": mx.zeros((m, P, channels)), "T": mx.ones((m, P)), "stopped": mx.zeros((m, P), mx.bool_),
+               "last": mx.zeros((m, P), mx.int32)}
+        if surface is not None:
+            out.update(passed=mx.zeros((m, P), mx.bool_), s_color=surface[1][rows], s_alpha=surface[2][rows], s_depth=surface[3][rows])
+        return out
+
+    def step(s, batch):
         px, py = grid.centres(batch.tiles)
         _, _, _, alpha, keep = _evaluate(batch, px, py, _gather(batch, means2d, conics, opacities))
         if surface is None:
             before, contributes, _, s["T"], s["stopped"] = _composite(alpha, keep, s["T"], s["stopped"])
         else:
-            before, contributes, _, s["T"], s["stopped"] = _surface_batch(batch, depths, alpha, keep, s)
+            before, contributes, _, s["T"], s["stopped"] = _surface_batch(batch, surface[0], alpha, keep, s)
         weight = mx.where(contributes, alpha * before, 0.0)
         s["accum"] = s["accum"] + weight @ features[batch.ids]
         s["last"] = mx.maximum(s["last"], mx.max(mx.where(contributes, batch.position, 0), axis=-1))
-        mx.eval(s)
-        stay = schedule.advance(batch, s["stopped"])
-        if surface is not None:
-            _surface_after_last(s, ~stay)
-        state.keep(stay)
-    accum = state.image("accum", accum0, width, height)
-    T = state.image("T", T0, width, height)
-    last = state.image("last", mx.zeros((num_tiles, P), mx.int32), width, height)
+
+    groups = _groups(grid, flatten_ids, n, budget, fields)
+    _drive(groups, step, None if surface is None else lambda s, batch, stay: _surface_after_last(s, ~stay))
+    accum0, T0 = mx.zeros((num_tiles, P, channels)), mx.ones((num_tiles, P))
+    if surface is not None:  # tiles without entries: the surface alone
+        accum0, T0 = surface[1], 1.0 - surface[2]
+    accum = _image(grid, groups, "accum", accum0, width, height)
+    T = _image(grid, groups, "T", T0, width, height)
+    last = _image(grid, groups, "last", mx.zeros((num_tiles, P), mx.int32), width, height)
     return accum, 1.0 - T, last, T
 
 
 def _backward(means2d, conics, features, opacities, flatten_ids, grid: _Tiles, budget: int, accum, final_T, cot_accum, cot_alpha):
     """Gradients (means2d, conics, features, opacities) of the composite, given its outputs and their cotangents (H, W, ...)."""
     n, P = means2d.shape[0], grid.pixels
-    schedule = _Schedule(grid, flatten_ids, n, budget)
-    rows, m = mx.array(schedule.tiles), schedule.tiles.size
-    g = grid.from_image(cot_accum)[rows]
-    T_final = grid.from_image(final_T)[rows]
-    fields = {
-        "T": mx.ones((m, P)), "stopped": mx.zeros((m, P), mx.bool_), "prefix": mx.zeros((m, P)), "g": g, "T_final": T_final,
-        "g_alpha_T": grid.from_image(cot_alpha)[rows] * T_final, "total": mx.sum(grid.from_image(accum)[rows] * g, axis=-1),
-    }
-    state = _State(grid, schedule.tiles, fields)
-    ids, per_entry = [], []
-    while (batch := schedule.next()) is not None:
-        s = state.active
+    g_all, T_final_all = grid.from_image(cot_accum), grid.from_image(final_T)
+    g_alpha_all, total_all = grid.from_image(cot_alpha) * T_final_all, mx.sum(grid.from_image(accum) * g_all, axis=-1)
+
+    def fields(rows, m):
+        return {"T": mx.ones((m, P)), "stopped": mx.zeros((m, P), mx.bool_), "prefix": mx.zeros((m, P)), "g": g_all[rows],
+                "g_alpha_T": g_alpha_all[rows], "total": total_all[rows]}
+
+    def step(s, batch):
         px, py = grid.centres(batch.tiles)
         gaussians = _gather(batch, means2d, conics, opacities)
         dx, dy, e, alpha, keep = _evaluate(batch, px, py, gaussians)
@@ -302,16 +370,40 @@ def _backward(means2d, conics, features, opacities, flatten_ids, grid: _Tiles, b
             -0.5 * dl_dpower * dx * dx, -dl_dpower * dx * dy, -0.5 * dl_dpower * dy * dy,
             mx.where(clamped, 0.0, e * dl_dalpha),
         ], axis=-1).sum(axis=1)  # (n, B, 6), summed over the tile's pixels
-        per_entry.append(mx.concatenate([grads, weight.swapaxes(1, 2) @ s["g"]], axis=-1).reshape(-1, 6 + f.shape[-1]))
-        ids.append(mx.where(batch.valid[:, 0], batch.ids, n).reshape(-1))  # invalid entries go to a spare row
+        s["entries"] = mx.concatenate([grads, weight.swapaxes(1, 2) @ s["g"]], axis=-1).reshape(-1, 6 + f.shape[-1])
         s["prefix"] = prefix[..., -1]
-        mx.eval(s, per_entry[-1])
-        state.keep(schedule.advance(batch, s["stopped"]))
+        s["ids"] = mx.where(batch.valid[:, 0], batch.ids, n).reshape(-1)  # invalid entries go to a spare row n
+
+    def after(s, batch, stay):  # the batch's per-entry results: kept aside, not carried as per-pixel state
+        per_batch.setdefault(batch.start, []).append((batch.tiles, s.pop("ids"), s.pop("entries")))
+
+    per_batch: dict = {}  # batch start -> [(tiles, ids, per-entry gradients)] of each group
+    _drive(_groups(grid, flatten_ids, n, budget, fields), step, after)
     total = mx.zeros((n + 1, 6 + features.shape[1]))
-    if per_entry:
-        total = total.at[mx.concatenate(ids)].add(mx.concatenate(per_entry))
+    if per_batch:
+        ids, rows = zip(*(_in_tile_order(per_batch[start]) for start in sorted(per_batch)))
+        total = total.at[mx.concatenate(ids)].add(mx.concatenate(rows))
     total = total[:n]
     return total[:, :2], total[:, 2:5], total[:, 6:], total[:, 5]
+
+
+def _in_tile_order(parts: list) -> tuple:
+    """One batch's (ids, per-entry rows) of every group, merged in tile order: the gradients are then summed in
+    the same order for any number of groups."""
+    if len(parts) == 1:
+        return parts[0][1], parts[0][2]
+    tiles = np.concatenate([p[0] for p in parts])
+    per_tile = parts[0][1].size // parts[0][0].size
+    order = mx.array((np.argsort(tiles, kind="stable")[:, None] * per_tile + np.arange(per_tile)).reshape(-1))
+    return mx.concatenate([p[1] for p in parts])[order], mx.concatenate([p[2] for p in parts])[order]
+
+
+def _detached(*arrays) -> list:
+    """Evaluated copies of ``arrays`` that refer to no graph. While a gradient is taken (``mx.grad``, ``mx.vjp``),
+    MLX keeps the inputs of every evaluated array alive; the depth batches start from such copies (the inputs, and
+    the per-pixel state after each batch), so that each batch's temporaries (gigabytes over a large frame
+    altogether) are freed as the next one runs."""
+    return [mx.array(np.asarray(a)) for a in arrays]
 
 
 @functools.lru_cache(maxsize=64)
@@ -321,7 +413,7 @@ def _rasterizer(width: int, height: int, tile: int, budget: int):
     @mx.custom_function
     def raster(means2d, conics, features, opacities, tile_offsets, flatten_ids):
         grid = _Tiles.of(tile_offsets, width, height, tile)
-        return _forward(means2d, conics, features, opacities, flatten_ids, grid, width, height, budget)
+        return _forward(*_detached(means2d, conics, features, opacities, flatten_ids), grid, width, height, budget)
 
     @raster.vjp
     def raster_vjp(primals, cotangents, outputs):
@@ -330,7 +422,8 @@ def _rasterizer(width: int, height: int, tile: int, budget: int):
         cot_accum = mx.zeros_like(accum) if cotangents[0] is None else cotangents[0].astype(mx.float32)
         cot_alpha = mx.zeros_like(final_T) if cotangents[1] is None else cotangents[1].astype(mx.float32)
         grid = _Tiles.of(tile_offsets, width, height, tile)
-        grads = _backward(means2d, conics, features, opacities, flatten_ids, grid, budget, accum, final_T, cot_accum, cot_alpha)
+        arrays = _detached(means2d, conics, features, opacities, flatten_ids, accum, final_T, cot_accum, cot_alpha)
+        grads = _backward(*arrays[:5], grid, budget, *arrays[5:])
         return (*grads, mx.zeros_like(tile_offsets), mx.zeros_like(flatten_ids))
 
     return raster
