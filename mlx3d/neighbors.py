@@ -1,14 +1,21 @@
 """k-nearest-neighbour queries on 3D point clouds (numpy in, numpy out).
 
-Backed by the k-d tree in the compiled extension (``mlx3d._core``): the tree
-is built once per call, queries run on ``num_threads`` threads with the GIL
-released, in chunks of ``chunk_size`` queries (so Ctrl-C is honoured between
-chunks and temporary memory stays O(chunk_size * k)).
+Backed by a k-d tree, built once per call: the compiled one in
+``mlx3d._core`` when it is available, else the numpy one in
+:mod:`mlx3d.kdtree` (``MLX3D_NO_CORE=1`` forces it). Queries run on
+``num_threads`` threads (the GIL released), in chunks of ``chunk_size``
+queries, so Ctrl-C is honoured between chunks and temporary memory stays
+O(chunk_size * k).
 
 Distances are Euclidean, in the units of the input coordinates, computed in
 float64 from the float32 coordinates and returned as float32. Results are
 sorted by increasing distance (ties broken by point index) and do not depend
-on ``num_threads`` or ``chunk_size``.
+on ``num_threads`` or ``chunk_size``. Both trees evaluate the same float64
+expressions, so they return bit-identical distances, means and k-th
+distances (as long as the compiler does not fuse ``csrc/knn.cpp``'s
+multiply-adds); the indices are identical too except where several points
+share a query's k-th distance: the numpy tree then keeps those of smallest
+index, the compiled one any of them.
 
 All argument errors raise ``ValueError`` (non-finite coordinates raise
 :class:`~mlx3d.errors.NonFiniteError`, a ``ValueError``) naming the argument.
@@ -21,7 +28,7 @@ from typing import Iterator
 
 import numpy as np
 
-from mlx3d import native
+from mlx3d import kdtree, native
 from mlx3d.errors import NonFiniteError
 from mlx3d.progress import ProgressFn  # called after each chunk with the queries done so far
 
@@ -35,6 +42,13 @@ __all__ = [
 DEFAULT_CHUNK_SIZE = 65536
 _LEAF_SIZE = 16
 
+
+def _tree(points: np.ndarray):
+    """k-d tree over validated float32 (N, 3) ``points``: the compiled one when
+    ``mlx3d._core`` is available, else :class:`mlx3d.kdtree.KDTree` (same methods)."""
+    if native.available():
+        return native.core().KDTree(points, _LEAF_SIZE)
+    return kdtree.KDTree(points, _LEAF_SIZE)
 
 
 # --------------------------------------------------------------------------- #
@@ -146,7 +160,7 @@ class _Plan:
                 else f"points has {n} rows"
             )
             raise ValueError(f"k={self.k} exceeds the {available} available neighbours ({why})")
-        self.tree = native.core().KDTree(pts, _LEAF_SIZE)
+        self.tree = _tree(pts)
 
     @property
     def m(self) -> int:
@@ -212,7 +226,7 @@ def knn(
         reference_index: with explicit ``queries`` only: (M,) int, each query's
             index in ``points`` (excluded from its result) or -1.
         num_threads: worker threads, 0 = all hardware threads.
-        chunk_size: queries per native call.
+        chunk_size: queries per tree call.
         progress: optional ``progress(done, total)`` called after each chunk
             (``total`` = M queries).
 

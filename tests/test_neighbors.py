@@ -1,5 +1,9 @@
-"""k-nearest neighbours (mlx3d.neighbors, mlx3d._core.KDTree) against a
-brute-force float64 numpy oracle."""
+"""k-nearest neighbours (mlx3d.neighbors, mlx3d._core.KDTree, mlx3d.kdtree.KDTree)
+against brute-force float64 numpy oracles, and the two trees against each other.
+
+The tests of the compiled module itself skip when it is unavailable (not
+built, or ``MLX3D_NO_CORE`` set); everything else passes either way.
+"""
 
 from __future__ import annotations
 
@@ -8,10 +12,14 @@ import sys
 import numpy as np
 import pytest
 
-from mlx3d import native, neighbors
+from mlx3d import kdtree, native, neighbors
 from mlx3d.errors import ExtensionBuildError, NonFiniteError
 
 RTOL = 1e-6
+needs_core = pytest.mark.skipif(
+    not native.available(),
+    reason="tests the compiled module mlx3d._core, which is unavailable (not built, or MLX3D_NO_CORE is set)",
+)
 
 
 # --------------------------------------------------------------------------- #
@@ -221,6 +229,7 @@ def test_accepts_float64_and_int_input(rng):
     np.testing.assert_array_equal(kth, np.ones(len(grid), dtype=np.float32))
 
 
+@needs_core
 def test_kdtree_low_level(rng):
     core = native.core()
     pts = uniform(rng, 5000)
@@ -304,6 +313,7 @@ def test_non_finite_rows_are_counted():
 # --------------------------------------------------------------------------- #
 # the compiled module itself
 # --------------------------------------------------------------------------- #
+@needs_core
 def test_extension_links_mlx():
     import mlx.core as mx
 
@@ -317,6 +327,8 @@ def test_extension_links_mlx():
 def test_missing_extension_raises_build_error(monkeypatch):
     import mlx3d
 
+    monkeypatch.delenv(native.DISABLE_ENV, raising=False)
+    monkeypatch.setattr(native, "_failure", None)  # restored afterwards: the real import state is kept
     monkeypatch.setattr(native, "_core", None)
     monkeypatch.delattr(mlx3d, "_core", raising=False)
     monkeypatch.setitem(sys.modules, "mlx3d._core", None)
@@ -339,3 +351,294 @@ def test_progress_callback(rng):
     assert calls == [(10, 10)]
     with pytest.raises(ValueError, match="progress must be a callable"):
         neighbors.knn(pts, 2, progress=5)
+
+
+# --------------------------------------------------------------------------- #
+# the numpy tree (mlx3d.kdtree) against an exact oracle
+# --------------------------------------------------------------------------- #
+def exact_oracle(points, queries, k, self_index=None):
+    """What both trees must return, by brute force with the trees' arithmetic.
+
+    Squared distances in float64 from the float32 coordinates as
+    (dx*dx + dy*dy) + dz*dz, the k smallest (d2, index) pairs per query,
+    the query's own point (self_index >= 0) excluded.
+
+    Returns (indices int64 (M, k), d2 float32 (M, k), mean float32 (M,),
+    kth float32 (M,)); the mean sums the k distances in increasing order.
+    """
+    p = np.asarray(points, dtype=np.float32).astype(np.float64)
+    q = np.asarray(queries, dtype=np.float32).astype(np.float64)
+    d2 = np.zeros((len(q), len(p)))
+    for a in range(3):
+        t = q[:, None, a] - p[None, :, a]
+        d2 = d2 + t * t
+    if self_index is not None:
+        rows = np.flatnonzero(self_index >= 0)
+        d2[rows, self_index[rows]] = np.inf
+    idx = np.argsort(d2, axis=1, kind="stable")[:, :k]  # columns are in index order: ties by index
+    kd2 = np.take_along_axis(d2, idx, axis=1)
+    with np.errstate(over="ignore"):  # squared distances above 3.4e38 are inf in float32
+        mean = (np.cumsum(np.sqrt(kd2), axis=1)[:, -1] / k).astype(np.float32)
+        kth = np.sqrt(kd2[:, -1]).astype(np.float32)
+        return idx, kd2.astype(np.float32), mean, kth
+
+
+def assert_tree_exact(tree, points, queries, k, self_index=None):
+    """query / query_mean / query_kth of ``tree`` equal the oracle bit for bit."""
+    idx, d2, mean, kth = exact_oracle(points, queries, k, self_index)
+    got_idx, got_d2 = tree.query(queries, k, self_index, 1)
+    assert got_idx.dtype == np.int64 and got_d2.dtype == np.float32
+    np.testing.assert_array_equal(got_idx, idx)
+    np.testing.assert_array_equal(got_d2, d2)
+    got_mean = tree.query_mean(queries, k, self_index, 1)
+    got_kth = tree.query_kth(queries, k, self_index, 1)
+    assert got_mean.dtype == np.float32 and got_kth.dtype == np.float32
+    np.testing.assert_array_equal(got_mean, mean)
+    np.testing.assert_array_equal(got_kth, kth)
+
+
+def grid(rng):
+    """Integer lattice: many exactly equal distances (ties by index)."""
+    g = np.stack(np.meshgrid(*[np.arange(11)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    return g[rng.permutation(len(g))].astype(np.float32)
+
+
+def planar(rng):
+    xy = rng.uniform(-3, 3, size=(1200, 2))
+    return np.concatenate([xy, np.full((1200, 1), 2.5)], axis=1).astype(np.float32)
+
+
+def huge_range(rng):
+    """Magnitudes from 1e-20 to 1e15 in one cloud (squared distances up to ~1e31)."""
+    mag = 10.0 ** rng.uniform(-20, 15, size=(1000, 3))
+    return (mag * rng.choice([-1.0, 1.0], size=(1000, 3))).astype(np.float32)
+
+
+def duplicate_clusters(rng):
+    """Runs of identical points larger than a leaf (400 and 40), small runs, -0.0 and +0.0."""
+    a = np.full((400, 3), 0.5, np.float32)
+    b = np.full((40, 3), [-1.0, 2.0, 0.0], np.float32)
+    b[::2, 2] = -0.0
+    pts = np.concatenate([a, b, duplicated(rng)[:600], uniform(rng, 300)])
+    return pts[rng.permutation(len(pts))]
+
+
+def beyond_float32(rng):
+    """Distances around 1e20: squared distances overflow float32 (inf), their roots do not."""
+    return (rng.standard_normal((500, 3)) * 1e20).astype(np.float32)
+
+
+PURE_DATASETS = dict(DATASETS, grid=grid, planar=planar, huge_range=huge_range,
+                     beyond_float32=beyond_float32, duplicate_clusters=duplicate_clusters)
+
+
+@pytest.mark.parametrize("name", sorted(PURE_DATASETS))
+@pytest.mark.parametrize("k", [1, 3, 25])
+def test_pure_tree_self_queries_exact(name, k, rng):
+    pts = PURE_DATASETS[name](rng)
+    tree = kdtree.KDTree(pts, neighbors._LEAF_SIZE)
+    assert_tree_exact(tree, pts, pts, k, np.arange(len(pts), dtype=np.int64))
+
+
+@pytest.mark.parametrize("name", ["clustered", "grid", "duplicate_clusters", "huge_range"])
+def test_pure_tree_explicit_queries_exact(name, rng):
+    pts = PURE_DATASETS[name](rng)
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    far = rng.uniform(lo - (hi - lo), hi + (hi - lo), size=(300, 3)).astype(np.float32)
+    on = pts[rng.choice(len(pts), 200)]  # at the points, nothing excluded: distance 0 first
+    tree = kdtree.KDTree(pts, neighbors._LEAF_SIZE)
+    for q in (far, on):
+        assert_tree_exact(tree, pts, q, 9)
+    ref = np.full(len(on), -1, dtype=np.int64)
+    ref[::2] = rng.integers(0, len(pts), size=len(ref[::2]))
+    assert_tree_exact(tree, pts, on, 9, ref)
+
+
+def test_pure_tree_small_and_full_k(rng):
+    one = np.array([[1.0, 2.0, 3.0]], np.float32)
+    tree = kdtree.KDTree(one, 16)
+    assert tree.size == 1 and tree.depth == 1
+    assert_tree_exact(tree, one, uniform(rng, 5), 1)
+    for n in (2, 5, 17, 40, 300):
+        pts = uniform(rng, n)
+        tree = kdtree.KDTree(pts, 16)
+        own = np.arange(n, dtype=np.int64)
+        assert_tree_exact(tree, pts, pts, n - 1, own)  # every other point
+        assert_tree_exact(tree, pts, pts[:3], n)  # every point, nothing excluded
+    same = np.zeros((300, 3), np.float32)
+    assert_tree_exact(kdtree.KDTree(same, 16), same, same, 299, np.arange(300, dtype=np.int64))
+
+
+def test_pure_tree_squared_distances_beyond_float32(rng, recwarn):
+    """Distances above 1.8e19: float32 squared distances are inf (as the compiled tree's),
+    means and k-th distances stay finite; no warning."""
+    pts = beyond_float32(rng)
+    tree = kdtree.KDTree(pts, 16)
+    own = np.arange(500, dtype=np.int64)
+    assert_tree_exact(tree, pts, pts, 4, own)
+    assert np.isinf(tree.query(pts, 4, own)[1]).any()
+    assert np.isfinite(tree.query_mean(pts, 4, own)).all()
+    assert not [w for w in recwarn if issubclass(w.category, RuntimeWarning)]
+
+
+@pytest.mark.parametrize("leaf_size", [1, 2, 7, 64])
+def test_pure_tree_leaf_sizes(leaf_size, rng):
+    pts = np.concatenate([clustered(rng)[:700], duplicated(rng)[:300]])
+    tree = kdtree.KDTree(pts, leaf_size)
+    assert_tree_exact(tree, pts, pts, 6, np.arange(len(pts), dtype=np.int64))
+
+
+def test_pure_tree_blocks_and_threads(monkeypatch, rng):
+    """Results do not depend on the block sizes nor on the thread count."""
+    pts = np.concatenate([far_outliers(rng), duplicate_clusters(rng)])
+    own = np.arange(len(pts), dtype=np.int64)
+    tree = kdtree.KDTree(pts, 16)
+    ref = tree.query(pts, 8, own, 1), tree.query_mean(pts, 8, own, 1)
+    monkeypatch.setattr(kdtree, "_BLOCK_QUERIES", 300)
+    monkeypatch.setattr(kdtree, "_BLOCK_CANDIDATES", 4000)
+    for threads in (1, 3, 0):
+        (idx, d2), mean = tree.query(pts, 8, own, threads), tree.query_mean(pts, 8, own, threads)
+        np.testing.assert_array_equal(idx, ref[0][0])
+        np.testing.assert_array_equal(d2, ref[0][1])
+        np.testing.assert_array_equal(mean, ref[1])
+    monkeypatch.setattr(kdtree, "_BLOCK_CANDIDATES", 64)  # one query per padded group
+    rows = rng.choice(len(pts), 300, replace=False)
+    idx, d2 = tree.query(pts[rows], 8, own[rows], 2)
+    np.testing.assert_array_equal(idx, ref[0][0][rows])
+    np.testing.assert_array_equal(d2, ref[0][1][rows])
+    assert_tree_exact(tree, pts, pts[:300], 8, own[:300])
+
+
+def test_pure_tree_low_level(rng):
+    pts = uniform(rng, 5000)
+    tree = kdtree.KDTree(pts, 16)
+    assert tree.size == 5000 and tree.leaf_size == 16
+    assert 10 <= tree.depth <= 16
+    assert tree.node_count == 2**tree.depth - 1
+    order = tree.order()
+    assert order.dtype == np.int64
+    np.testing.assert_array_equal(np.sort(order), np.arange(5000))
+    # spatially coherent: consecutive points in tree order are near each other
+    step = np.linalg.norm(np.diff(pts[order], axis=0), axis=1)
+    assert np.median(step) < 0.2 * np.median(np.linalg.norm(np.diff(pts, axis=0), axis=1))
+    idx, d2 = tree.query(pts[:0], 3)
+    assert idx.shape == (0, 3) and d2.shape == (0, 3)
+    # runs of duplicates are listed once per member
+    dup = duplicate_clusters(rng)
+    np.testing.assert_array_equal(np.sort(kdtree.KDTree(dup, 16).order()), np.arange(len(dup)))
+    with pytest.raises(ValueError, match="leaf_size must be >= 1"):
+        kdtree.KDTree(pts, 0)
+
+
+def test_pure_tree_large_duplicate_run_is_fast(rng):
+    """100k identical points cost about as much as one point (no pairwise work)."""
+    import time
+
+    pts = np.concatenate([np.full((100_000, 3), 0.25, np.float32), uniform(rng, 5000)])
+    t0 = time.perf_counter()
+    tree = kdtree.KDTree(pts, 16)
+    kth = tree.query_kth(pts, 25, np.arange(len(pts), dtype=np.int64))
+    assert time.perf_counter() - t0 < 30  # a few seconds at most; pairwise work would take minutes
+    assert np.all(kth[:100_000] == 0)
+    idx, _ = tree.query(pts[:3], 25, np.arange(3, dtype=np.int64))
+    np.testing.assert_array_equal(idx[0], np.arange(1, 26))  # the 25 smallest other indices
+    np.testing.assert_array_equal(idx[2], np.delete(np.arange(26), 2))
+
+
+# --------------------------------------------------------------------------- #
+# the numpy tree against the compiled one, and neighbors without _core
+# --------------------------------------------------------------------------- #
+def assert_same_as_native(native_tree, pure_tree, queries, k, self_index):
+    """Bit-identical distances, means and k-th distances; identical indices except
+    where points tie at a row's k-th distance (the compiled tree keeps any of them)."""
+    n_idx, n_d2 = native_tree.query(queries, k, self_index, 0)
+    p_idx, p_d2 = pure_tree.query(queries, k, self_index, 0)
+    np.testing.assert_array_equal(p_d2, n_d2)
+    below = n_d2 < n_d2[:, -1:]  # strictly nearer than the k-th: no choice among ties
+    np.testing.assert_array_equal(p_idx[below], n_idx[below])
+    np.testing.assert_array_equal(pure_tree.query_mean(queries, k, self_index, 0),
+                                  native_tree.query_mean(queries, k, self_index, 0))
+    np.testing.assert_array_equal(pure_tree.query_kth(queries, k, self_index, 0),
+                                  native_tree.query_kth(queries, k, self_index, 0))
+    return p_idx, n_idx
+
+
+@needs_core
+@pytest.mark.parametrize("name", sorted(PURE_DATASETS))
+@pytest.mark.parametrize("k", [1, 3, 25])
+def test_pure_tree_matches_native(name, k, rng):
+    pts = PURE_DATASETS[name](rng)
+    own = np.arange(len(pts), dtype=np.int64)
+    nt = native.core().KDTree(pts, neighbors._LEAF_SIZE)
+    pt = kdtree.KDTree(pts, neighbors._LEAF_SIZE)
+    p_idx, n_idx = assert_same_as_native(nt, pt, pts, k, own)
+    if name in ("uniform", "clustered", "far_outliers"):
+        np.testing.assert_array_equal(p_idx, n_idx)  # no ties: the whole index arrays agree
+    q = rng.uniform(pts.min(axis=0), pts.max(axis=0), size=(400, 3)).astype(np.float32)
+    assert_same_as_native(nt, pt, q, k, None)
+
+
+@needs_core
+@pytest.mark.parametrize("name", ["uniform", "clustered", "far_outliers"])
+def test_neighbors_without_core_match_native(name, monkeypatch, rng):
+    pts = PURE_DATASETS[name](rng)
+    queries = rng.uniform(-2, 2, size=(500, 3)).astype(np.float32)
+    sub = np.sort(rng.choice(len(pts), 300, replace=False))
+    ref = np.full(len(pts), -1, dtype=np.int64)
+    ref[sub] = np.arange(sub.size)
+    calls = [
+        lambda: neighbors.knn(pts, 7),
+        lambda: neighbors.knn(pts, 4, queries, chunk_size=123),
+        lambda: neighbors.mean_knn_distance(pts, 25),
+        lambda: neighbors.mean_knn_distance(pts[sub], 3, pts, reference_index=ref),
+        lambda: neighbors.kth_knn_distance(pts, 10, chunk_size=500),
+    ]
+    with_core = [call() for call in calls]
+    monkeypatch.setenv("MLX3D_NO_CORE", "1")
+    assert not native.available()
+    assert isinstance(neighbors._tree(pts), kdtree.KDTree)
+    for call, expected in zip(calls, with_core):
+        got = call()
+        for a, b in zip(got if isinstance(got, tuple) else (got,),
+                        expected if isinstance(expected, tuple) else (expected,)):
+            assert a.dtype == b.dtype
+            np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("name", ["clustered", "grid", "duplicate_clusters"])
+def test_neighbors_without_core_exact(name, monkeypatch, rng):
+    monkeypatch.setenv("MLX3D_NO_CORE", "1")
+    pts = PURE_DATASETS[name](rng)
+    own = np.arange(len(pts), dtype=np.int64)
+    idx, d2, mean, kth = exact_oracle(pts, pts, 5, own)
+    got_idx, got_dist = neighbors.knn(pts, 5, chunk_size=333)
+    np.testing.assert_array_equal(got_idx, idx)
+    np.testing.assert_array_equal(got_dist, np.sqrt(d2))
+    np.testing.assert_array_equal(neighbors.mean_knn_distance(pts, 5), mean)
+    np.testing.assert_array_equal(neighbors.kth_knn_distance(pts, 5), kth)
+
+
+def test_neighbors_without_core_progress_and_interrupt(monkeypatch, rng):
+    monkeypatch.setenv("MLX3D_NO_CORE", "1")
+    pts = uniform(rng, 1000)
+    calls = []
+    neighbors.mean_knn_distance(pts, 4, chunk_size=300, progress=lambda d, t: calls.append((d, t)))
+    assert calls == [(300, 1000), (600, 1000), (900, 1000), (1000, 1000)]
+
+    def stop(done, total):
+        if done >= 600:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        neighbors.knn(pts, 4, chunk_size=300, progress=stop)
+    with pytest.raises(ValueError, match=r"k=1000 exceeds the 999 available neighbours"):
+        neighbors.knn(pts, 1000)
+
+
+def test_pure_tree_splits_blocks_with_wide_bounds(monkeypatch, rng):
+    """Queries far from every point (wide bounds, many leaves each) still match the oracle
+    when a block's walk is over the pair limit and gets halved."""
+    pts = uniform(rng, 3000)
+    far = (rng.standard_normal((300, 3)) * 50).astype(np.float32)
+    monkeypatch.setattr(kdtree, "_MAX_PAIRS", 500)
+    assert_tree_exact(kdtree.KDTree(pts, 16), pts, far, 30)
