@@ -42,8 +42,12 @@ BUILD_DIR ?= build/$(if $(filter .venv,$(VENV)),,$(VENV:.%=%)/){wheel_tag}
 #   test-blender53  .venv-blender53  Python 3.13, bpy 5.3.0 (numpy 2.x): tests/blender, incl. Blender's own 3DGS import
 #   test-pip-editable  (temporary)   Python 3.11: a contributor's plain `pip install -e .` (build isolation)
 #                    imports the compiled module and runs `python -m mlx3d`
+#   test-clang      .venv-clang      Python 3.11: the compiled module built with clang (clang++ on PATH),
+#                    as Apple clang builds it on macOS, and the kernel tests against it
+#   test-macos-compile .venv-macos   the module's C++ sources cross-compiled for macOS arm64 (zig c++,
+#                    the macOS MLX wheel's headers): tests/test_macos_compile.py
 # Each entry prints its wall time. PYTEST_ARGS adds pytest options (e.g. -x, -k).
-TEST_MATRIX := test-py311 test-py313 test-blender45 test-blender53 test-pip-editable
+TEST_MATRIX := test-py311 test-py313 test-blender45 test-blender53 test-pip-editable test-clang test-macos-compile
 BPY_LTS := 4.5.15
 BPY_LATEST := 5.3.0
 PYTEST_ARGS ?=
@@ -108,6 +112,45 @@ test-pip-editable:
 	cd "$$tmp" && "$$tmp/venv/bin/python" -c "import mlx3d._core, mlx3d; print('pip install -e .: mlx3d._core from', mlx3d._core.__file__)" && \
 	"$$tmp/venv/bin/python" -m mlx3d --help > /dev/null && echo "pip install -e .: python -m mlx3d runs"
 
+# The compiled module built with clang (CLANGXX=... for another clang++) in its own venv and build
+# directory (no bpy: the kernel tests do not need Blender). Clang takes the kernels' vector lanes as
+# GCC does, but not GCC's target_clones variants nor its scheduling flags; the frozen and bitwise
+# tests hold it to the GCC build's results.
+CLANGXX ?= clang++
+CLANG_VENV := .venv-clang
+CLANG_STAMP := $(CLANG_VENV)/.mlx3d-clang-installed-numpy$(NUMPY_3.11)
+CLANG_TESTS := tests/test_rasterize_cpu.py tests/test_rasterize_metal.py tests/test_projection_kernel.py \
+	tests/test_sh_color.py tests/test_photometric_kernel.py tests/test_activation.py tests/test_neighbors.py \
+	tests/test_render_binning.py tests/test_transforms.py tests/test_trainer.py
+test-clang: $(CLANG_STAMP)
+	$(CLANG_VENV)/bin/python -m pytest -q $(PYTEST_ARGS) $(CLANG_TESTS)
+
+$(CLANG_STAMP): pyproject.toml CMakeLists.txt
+	@$(call require_python,3.11,$(PYTHON311))
+	@command -v $(CLANGXX) > /dev/null || { echo "make: $(CLANGXX) was not found: install clang (Debian/Ubuntu: apt-get install clang) or pass CLANGXX=/path/to/clang++" >&2; exit 1; }
+	test -x $(CLANG_VENV)/bin/python || "$(PYTHON311)" -m venv $(CLANG_VENV)
+	$(CLANG_VENV)/bin/python -c "import subprocess, sys, tomllib; reqs = tomllib.load(open('pyproject.toml', 'rb'))['build-system']['requires']; subprocess.check_call([sys.executable, '-m', 'pip', 'install', '-q', *reqs])"
+	$(CLANG_VENV)/bin/python -m pip install -q --no-build-isolation -C build-dir=build/venv-clang/{wheel_tag} -C editable.rebuild=true \
+		-C cmake.define.CMAKE_CXX_COMPILER="$$(command -v $(CLANGXX))" -e ".[test]" "numpy==$(NUMPY_3.11)"
+	rm -f $(CLANG_VENV)/.mlx3d-clang-installed*
+	touch $@
+
+# The macOS compile check: zig (PyPI's ziglang) and the macOS arm64 wheel of the pinned MLX's
+# headers (mlx-metal, unpacked into build/macos-mlx/<version>/), nanobind's and Python's headers.
+ZIGLANG ?= 0.17.1
+MACOS_VENV := .venv-macos
+MLX_PIN := $(shell sed -n 's/^ *"mlx==\([0-9.]*\);.*darwin.*/\1/p' pyproject.toml | head -n 1)
+MACOS_MLX := build/macos-mlx/$(MLX_PIN)
+test-macos-compile:
+	@$(call require_python,3.11,$(PYTHON311))
+	test -x $(MACOS_VENV)/bin/python || "$(PYTHON311)" -m venv $(MACOS_VENV)
+	$(MACOS_VENV)/bin/python -c "import subprocess, sys, tomllib; reqs = tomllib.load(open('pyproject.toml', 'rb'))['build-system']['requires']; subprocess.check_call([sys.executable, '-m', 'pip', 'install', '-q', 'pytest', 'ziglang==$(ZIGLANG)', *[r for r in reqs if r.startswith('nanobind')]])"
+	test -f $(MACOS_MLX)/mlx/include/mlx/mlx.h || { \
+		$(MACOS_VENV)/bin/python -m pip download -q --no-deps --only-binary=:all: --platform macosx_14_0_arm64 -d $(MACOS_MLX) "mlx-metal==$(MLX_PIN)" && \
+		$(MACOS_VENV)/bin/python -c "import glob, sys, zipfile; z = zipfile.ZipFile(glob.glob(sys.argv[1] + '/mlx_metal-*.whl')[0]); z.extractall(sys.argv[1], [n for n in z.namelist() if n.startswith('mlx/include/')])" $(MACOS_MLX) && \
+		rm -f $(MACOS_MLX)/mlx_metal-*.whl; }
+	MLX3D_MACOS_MLX_INCLUDE=$(MACOS_MLX)/mlx/include $(MACOS_VENV)/bin/python -m pytest -q $(PYTEST_ARGS) tests/test_macos_compile.py
+
 # The tests of one venv (VENV, PYTHON, BPY as above; TESTS: pytest paths).
 TESTS ?=
 test-venv: $(STAMP)
@@ -134,9 +177,12 @@ report: $(STAMP)
 
 install: $(STAMP)
 
-# The Blender extension zip(s) in dist/ (see addon/package.py).
+# The Blender extension zip(s) in dist/ (see addon/package.py): this machine's
+# platform, or `make extension PLATFORM=linux-x64,macos-arm64,windows-x64,linux-arm64`
+# (or PLATFORM=all); an environment variable PLATFORM is not used.
+PLATFORM =
 extension: $(STAMP)
-	$(PY) addon/package.py
+	$(PY) addon/package.py $(if $(PLATFORM),--platform $(PLATFORM))
 
 # Editable install without build isolation in a fixed build directory: the
 # extension builds against the pinned mlx in this venv, and edited C++ sources

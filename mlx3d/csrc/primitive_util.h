@@ -47,7 +47,7 @@
 #define MLX3D_FMA_CLONES
 #endif
 
-#if defined(__GNUC__) && !defined(__clang__) && !defined(MLX3D_SCALAR_LANES)
+#if defined(__GNUC__) && !defined(MLX3D_SCALAR_LANES)
 // Lane values only cross always-inlined functions, so GCC's note that passing AVX vectors by value
 // changes the calling convention does not apply.
 #pragma GCC diagnostic ignored "-Wpsabi"
@@ -57,10 +57,10 @@
 namespace mlx3d {
 
 // Lanes: elements computed together by the per-Gaussian kernels (sh_color.cpp, projection.cpp), one
-// per lane of a GCC vector of floats: 8, one AVX register in the MLX3D_AVX2_CLONES variant and two SSE
-// registers otherwise; one float with other compilers (as the rasterizer's lanes, rasterize.cpp) or
-// with -DMLX3D_SCALAR_LANES. Each lane runs the float operations of one element alone, so the results
-// do not depend on the batching.
+// per lane of a GCC vector of floats (GCC and clang): 8, one AVX register in the MLX3D_AVX2_CLONES
+// variant (GCC) and two SSE or NEON registers otherwise; one float with other compilers (MSVC; as the
+// rasterizer's lanes, rasterize.cpp) or with -DMLX3D_SCALAR_LANES. Each lane runs the float operations
+// of one element alone, so the results do not depend on the batching.
 #if defined(MLX3D_VECTOR_LANES)
 constexpr int kLanes = 8;
 typedef float Lanes __attribute__((vector_size(4 * kLanes)));

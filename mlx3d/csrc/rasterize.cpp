@@ -70,14 +70,15 @@
 #include "mlx/stream.h"
 
 // Lane types: the tile kernels run several pixels at once, one per lane. With
-// GCC they are vectors of floats / int32 (GCC vector extensions): 8 lanes in
-// the AVX2 variant (x86-64, picked at run time), 4 otherwise (SSE2, NEON);
-// other compilers (or -DMLX3D_RASTER_SCALAR_LANES) get one pixel per lane.
+// GCC and clang (which has GCC's vector extensions and defines __GNUC__ too)
+// they are vectors of floats / int32: 8 lanes in the AVX2 variant (x86-64
+// ELF, picked at run time), 4 otherwise (SSE2, NEON); other compilers (MSVC)
+// or -DMLX3D_RASTER_SCALAR_LANES get one pixel per lane.
 // Each lane runs exactly the scalar per-pixel recurrence, so forward results
 // do not depend on the lane width. The rm_* templates of raster_math.h are
 // instantiated with the lane type; comparisons give lane masks (-1 / 0 per
 // lane; bool for scalar lanes) and `?:` selects per lane.
-#if defined(__GNUC__) && !defined(__clang__) && !defined(MLX3D_RASTER_SCALAR_LANES)
+#if defined(__GNUC__) && !defined(MLX3D_RASTER_SCALAR_LANES)
 #define MLX3D_RASTER_VECTOR_LANES 1
 #pragma GCC diagnostic ignored "-Wpsabi"
 typedef float LaneF4 __attribute__((vector_size(16)));
