@@ -42,12 +42,16 @@ BUILD_DIR ?= build/$(if $(filter .venv,$(VENV)),,$(VENV:.%=%)/){wheel_tag}
 #   test-blender53  .venv-blender53  Python 3.13, bpy 5.3.0 (numpy 2.x): tests/blender, incl. Blender's own 3DGS import
 #   test-pip-editable  (temporary)   Python 3.11: a contributor's plain `pip install -e .` (build isolation)
 #                    imports the compiled module and runs `python -m mlx3d`
+#   test-pure       .venv            Python 3.11: the whole suite with mlx3d._core turned off (MLX3D_NO_CORE=1),
+#                    as where it is missing (Windows, macOS, Linux arm64); the tests of _core itself skip
+#   test-mac-path   .venv            Python 3.11: the Apple-GPU path (Metal backend forced, the Metal kernels'
+#                    sources compiled as C++, _core off): tests/test_mac_path.py, tests/test_rasterize_metal.py
 #   test-clang      .venv-clang      Python 3.11: the compiled module built with clang (clang++ on PATH),
 #                    as Apple clang builds it on macOS, and the kernel tests against it
 #   test-macos-compile .venv-macos   the module's C++ sources cross-compiled for macOS arm64 (zig c++,
 #                    the macOS MLX wheel's headers): tests/test_macos_compile.py
 # Each entry prints its wall time. PYTEST_ARGS adds pytest options (e.g. -x, -k).
-TEST_MATRIX := test-py311 test-py313 test-blender45 test-blender53 test-pip-editable test-clang test-macos-compile
+TEST_MATRIX := test-py311 test-py313 test-blender45 test-blender53 test-pip-editable test-pure test-mac-path test-clang test-macos-compile
 BPY_LTS := 4.5.15
 BPY_LATEST := 5.3.0
 PYTEST_ARGS ?=
@@ -112,6 +116,12 @@ test-pip-editable:
 	cd "$$tmp" && "$$tmp/venv/bin/python" -c "import mlx3d._core, mlx3d; print('pip install -e .: mlx3d._core from', mlx3d._core.__file__)" && \
 	"$$tmp/venv/bin/python" -m mlx3d --help > /dev/null && echo "pip install -e .: python -m mlx3d runs"
 
+test-pure: $(STAMP)
+	MLX3D_NO_CORE=1 $(PY) -m pytest -q $(PYTEST_ARGS)
+
+test-mac-path: $(STAMP)
+	MLX3D_NO_CORE=1 $(PY) -m pytest -q $(PYTEST_ARGS) tests/test_mac_path.py tests/test_rasterize_metal.py
+
 # The compiled module built with clang (CLANGXX=... for another clang++) in its own venv and build
 # directory (no bpy: the kernel tests do not need Blender). Clang takes the kernels' vector lanes as
 # GCC does, but not GCC's target_clones variants nor its scheduling flags; the frozen and bitwise
@@ -127,6 +137,8 @@ test-clang: $(CLANG_STAMP)
 
 $(CLANG_STAMP): pyproject.toml CMakeLists.txt
 	@$(call require_python,3.11,$(PYTHON311))
+	@command -v $(CLANGXX) > /dev/null || [ "$(CLANGXX)" != clang++ ] || ! command -v apt-get > /dev/null || [ "$$(id -u)" != 0 ] || \
+		{ echo "make: installing clang (apt-get install clang)"; apt-get update -q > /dev/null && apt-get install -y -q clang > /dev/null; }
 	@command -v $(CLANGXX) > /dev/null || { echo "make: $(CLANGXX) was not found: install clang (Debian/Ubuntu: apt-get install clang) or pass CLANGXX=/path/to/clang++" >&2; exit 1; }
 	test -x $(CLANG_VENV)/bin/python || "$(PYTHON311)" -m venv $(CLANG_VENV)
 	$(CLANG_VENV)/bin/python -c "import subprocess, sys, tomllib; reqs = tomllib.load(open('pyproject.toml', 'rb'))['build-system']['requires']; subprocess.check_call([sys.executable, '-m', 'pip', 'install', '-q', *reqs])"

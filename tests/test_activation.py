@@ -7,6 +7,9 @@ import pytest
 
 from mlx3d.render import activation
 from thread_counts import per_thread_count
+from core_marks import needs_core
+
+pytestmark = needs_core
 
 
 def inputs(n=100_003, seed=0):

@@ -9,6 +9,9 @@ import pytest
 
 from mlx3d.training.metrics import photometric_loss
 from thread_counts import per_thread_count
+from core_marks import needs_core
+
+pytestmark = needs_core
 
 # float32 sums of the same terms in another order (the loss is a mean over up to 10^6 terms)
 LOSS_RTOL = 1e-5

@@ -9,6 +9,9 @@ import pytest
 from mlx3d.cameras import Camera
 from mlx3d.render.projection import project_ewa
 from thread_counts import per_thread_count
+from core_marks import needs_core
+
+pytestmark = needs_core
 
 # the same float32 formulas in another evaluation order: outputs to a few ulp; gradients through the
 # conic (which squares the 2D covariance's inverse) to 1e-3 of each entry's size, or 1e-6 of the

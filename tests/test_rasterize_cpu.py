@@ -22,6 +22,9 @@ import pytest
 from mlx3d import native
 from mlx3d.render import raster_cpu
 from mlx3d.render.raster_cpu import get_num_threads, rasterize_cpu, set_num_threads
+from core_marks import needs_core
+
+pytestmark = needs_core
 
 # The rules' constants as the float32 kernels hold them (0.99f, 1/255.f, 1e-4f):
 # with float64 constants, a pixel where two clamped Gaussians meet

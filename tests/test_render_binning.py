@@ -11,7 +11,7 @@ from mlx3d.render import bin_gaussians, bin_tiles
 from mlx3d.render.binning import tile_extents
 from mlx3d.render.raster_reference import rasterize_reference
 
-needs_core = pytest.mark.skipif(not native.available(), reason="mlx3d._core is not available (not built, or MLX3D_NO_CORE is set)")
+from core_marks import needs_core
 BACKENDS = [pytest.param("cpu", marks=needs_core), "mlx"]
 
 

@@ -8,6 +8,9 @@ import pytest
 from mlx3d.render.sh_color import sh_colors
 from mlx3d.splatting.sh import eval_sh
 from thread_counts import per_thread_count
+from core_marks import needs_core
+
+pytestmark = needs_core
 
 # float32 kernels against the float32 reference: both sum the same terms in the same order, but
 # the reference's normalisation uses pow(·, -0.5) and autodiff's own expression order
