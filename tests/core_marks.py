@@ -1,9 +1,13 @@
 """``needs_core``: the mark of tests about the compiled module ``mlx3d._core`` itself (its kernels, their
 threads and bits). They skip, with the reason, where the module is missing or turned off
-(``MLX3D_NO_CORE``, as ``make test-pure`` runs the suite); everything else runs either way."""
+(``MLX3D_NO_CORE``, as ``make test-pure`` runs the suite); everything else runs either way.
+``FAST``: the backend a test uses for "the fast renderer": 'cpu' (the C++ kernels), or 'mlx' where
+the compiled module is not available."""
 
 import pytest
 
 from mlx3d import native
 
 needs_core = pytest.mark.skipif(not native.available(), reason="tests mlx3d._core itself, which is not available here (not built, or MLX3D_NO_CORE is set)")
+
+FAST = "cpu" if native.available() else "mlx"

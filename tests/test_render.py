@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 import render_oracle
+from mlx3d import native
 from mlx3d.cameras import Camera
 from mlx3d.render import plan_render, project_gaussians, project_gaussians_ut, render_gaussian_depth, render_gaussian_features, render_gaussians
 from mlx3d.splatting import GaussianModel
@@ -24,15 +25,9 @@ from mlx3d.splatting import GaussianModel
 DATA = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data")
 
 
-def _cpu_available():
-    try:
-        from mlx3d.render.raster_cpu import rasterize_cpu  # noqa: F401
-    except ImportError:
-        return False
-    return True
-
-
-BACKENDS = ["reference"] + (["cpu"] if _cpu_available() else [])
+# the renderers compared: the pure-MLX oracle, the MLX tiles, and the C++ kernels where mlx3d._core is available
+BACKENDS = ["reference", "mlx"] + (["cpu"] if native.available() else [])
+FAST = BACKENDS[-1]
 
 
 def camera(width=48, height=40, **kw):
@@ -82,13 +77,14 @@ def check_case(cam, s, oracle=True):
             assert np.isfinite(g).all(), (backend, name)
             assert not g[~visible].any(), f"{backend}: culled Gaussians got a gradient for {name}"
         results[backend] = (image, np.array(out["alpha"]), {k: np.array(v) for k, v in grads.items()})
-    if "cpu" in results:
-        ref, cpu = results["reference"], results["cpu"]
-        np.testing.assert_allclose(cpu[0], ref[0], atol=1e-4)
-        np.testing.assert_allclose(cpu[1], ref[1], atol=1e-4)
+    ref = results["reference"]
+    for backend in BACKENDS[1:]:
+        got = results[backend]
+        np.testing.assert_allclose(got[0], ref[0], atol=1e-4, err_msg=backend)
+        np.testing.assert_allclose(got[1], ref[1], atol=1e-4, err_msg=backend)
         for name in ref[2]:
             scale = max(np.abs(ref[2][name]).max(), 1e-4)  # analytically-zero gradients carry ~1e-8 noise
-            np.testing.assert_allclose(cpu[2][name], ref[2][name], atol=1e-3 * scale, err_msg=name)
+            np.testing.assert_allclose(got[2][name], ref[2][name], atol=1e-3 * scale, err_msg=f"{backend} {name}")
     if oracle:
         image, alpha = render_oracle.render(cam, s["means"].astype(np.float64), s["quats"], s["scales"], s["opacities"], s["colors"], background=(0.2, 0.3, 0.4))
         np.testing.assert_allclose(results["reference"][0], image, atol=2e-4)
@@ -278,7 +274,7 @@ def test_plan_runs_only_needed_stages():
         plan_render(cam)
 
 
-@pytest.mark.parametrize("backend", ["reference", "cpu"])
+@pytest.mark.parametrize("backend", BACKENDS)
 def test_sh_evaluation_stops_at_the_requested_degree(monkeypatch, backend):
     import mlx3d.render.pipeline as pipeline
 
@@ -321,7 +317,6 @@ def test_model_render_uses_its_sh():
 
 # ------------------------------------------------------------------ real data
 @pytest.mark.skipif(not os.path.exists(os.path.join(DATA, "test_garden.npz")), reason="shared/data/test_garden.npz not present")
-@pytest.mark.skipif("cpu" not in BACKENDS, reason="compiled rasterizer not built")
 def test_real_garden_points_and_cameras():
     data = np.load(os.path.join(DATA, "test_garden.npz"))
     rng = np.random.default_rng(0)
@@ -332,7 +327,7 @@ def test_real_garden_points_and_cameras():
         full = Camera(width=w, height=h, fx=float(k[0, 0]), fy=float(k[1, 1]), cx=float(k[0, 2]), cy=float(k[1, 2]), viewmat=view)
         cam = full.scaled(0.25)
         depth_cam = (np.asarray(model.means) @ np.asarray(view)[:3, :3].T + np.asarray(view)[:3, 3])[:, 2]
-        out = model.render(cam, backend="cpu")
+        out = model.render(cam, backend=FAST)
         radii = np.array(out["radii"])
         assert np.isfinite(np.array(out["image"])).all()
         assert (depth_cam < cam.near).any(), "the real data has points behind these cameras"

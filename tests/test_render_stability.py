@@ -49,6 +49,8 @@ from mlx3d.cameras import Camera
 from mlx3d.render import project_gaussians, project_gaussians_ut, render_gaussians
 from mlx3d.splatting.sh import eval_sh
 
+from core_marks import FAST
+
 SEED = int(os.environ.get("MLX3D_STABILITY_SEED", "20250611"))
 NUM_CASES = int(os.environ.get("MLX3D_STABILITY_CASES", "300"))
 REFERENCE_EVERY = 10  # the slow pure-MLX rasterizer on every 10th case (small ones)
@@ -245,7 +247,7 @@ def build_case(index: int, seed: int = SEED) -> Case:
     geometry = rng.random() < 0.5
     variance = geometry and rng.random() < 0.5
     depth = geometry and (variance or rng.random() < 0.8)
-    backend = "reference" if index % REFERENCE_EVERY == 0 else "cpu"
+    backend = "reference" if index % REFERENCE_EVERY == 0 else FAST
     if backend == "reference":  # keep the oracle's cost bounded
         n_ref = min(n, 60)
         kinds, means, scales, quats, opacities = kinds[:n_ref], means[:n_ref], scales[:n_ref], quats[:n_ref], opacities[:n_ref]
@@ -382,7 +384,7 @@ def run_case(case: Case) -> dict:
         assert not unseen_grad.any(), _fail(case, f"Gaussians {np.flatnonzero(unseen_grad)[:5].tolist()} reach no pixel "
                                                   f"(peak alpha {peak[unseen_grad][:5].tolist()}) but got a non-zero d/d{name}")
     if case.backend == "reference":  # the C++ kernel composites the same pixels
-        cpu = case.render(*case.inputs(), backend="cpu")
+        cpu = case.render(*case.inputs(), backend=FAST)
         for k, atol in (("image", 1e-5 * max(cmax, 1.0)), ("alpha", 1e-5), ("normals", 1e-5), ("depth", 1e-4 * np.abs(get.get("depth", 0.0)).max())):
             if k in get:
                 np.testing.assert_allclose(np.array(cpu[k]), get[k], rtol=0, atol=atol, err_msg=_fail(case, f"cpu and reference {k} differ"))
@@ -401,7 +403,7 @@ def test_generator_covers_the_hard_inputs():
     assert {(c.camera.width, c.camera.height) for c in cases} == set(SIZES)
     assert {"ut" if c.projection == "ut" or c.camera.needs_ut else "ewa" for c in cases} == {"ewa", "ut"}
     assert "pinhole" in {c.camera.model for c in cases if c.projection == "ut"}  # UT where EWA would do too
-    assert {c.backend for c in cases} == {"cpu", "reference"} and {c.antialias for c in cases} == {False, True}
+    assert {c.backend for c in cases} == {FAST, "reference"} and {c.antialias for c in cases} == {False, True}
     assert {None if c.sh is None else c.sh.shape[1] for c in cases} == {None, 1, 4, 9, 16}
     for flag in ("render_depth", "render_depth_variance", "render_normals", "planar_depth"):
         assert {getattr(c, flag) for c in cases} == {False, True}, flag
@@ -416,7 +418,7 @@ def test_generator_covers_the_hard_inputs():
     assert (norms == 0).any() and norms[norms > 0].min() < 1e-15 and norms.max() > 1e12
     opacities = np.concatenate([c.opacities for c in cases])
     assert {0.0, np.float32(1 - 1e-7), 1.0} <= set(opacities.tolist())
-    drawn = [float(np.array(c.render(*c.inputs(), backend="cpu")["alpha"]).max()) > 0.01 for c in cases[::4]]
+    drawn = [float(np.array(c.render(*c.inputs(), backend=FAST)["alpha"]).max()) > 0.01 for c in cases[::4]]
     assert np.mean(drawn) > 0.3, f"only {np.mean(drawn):.0%} of the cases draw anything"
 
 
@@ -430,7 +432,7 @@ def _check_small(camera, means, quats, scales, **kw):
     case = Case(
         index=-1, seed=-1, camera=camera, scene_scale=1.0, distance=4.0, means=np.float32(means), quats=np.float32(quats),
         scales=np.float32(scales), opacities=np.float32([0.8, 0.5]), colors=np.float32([[0.5, 0.2, 0.1], [0.1, 0.4, 0.9]]), sh=None,
-        sh_degree=3, background=None, antialias=kw.get("antialias", False), projection=kw.get("projection", "auto"), backend="cpu",
+        sh_degree=3, background=None, antialias=kw.get("antialias", False), projection=kw.get("projection", "auto"), backend=FAST,
         render_depth=kw.get("render_depth", False), render_depth_variance=False, render_normals=kw.get("render_normals", False),
         planar_depth=kw.get("planar_depth", False), kinds=np.array(["hard", "plain"]), weights_seed=3,
     )

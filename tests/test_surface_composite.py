@@ -29,6 +29,7 @@ from mlx3d.cameras import Camera
 from mlx3d.render import Surface, plan_render, render_gaussians
 from mlx3d.render.raster_cpu import rasterize_cpu, rasterize_cpu_surface
 from mlx3d.splatting import GaussianModel
+from core_marks import FAST, needs_core
 from thread_counts import per_thread_count
 
 WIDTH, HEIGHT = 24, 20
@@ -155,6 +156,7 @@ def kernel_inputs(s):
     return (out["means2d"], out["conics"], mx.array(s["colors"]), mx.array(s["opacities"]), bins.tile_offsets, bins.flatten_ids), out["depths"]
 
 
+@needs_core
 def test_kernel_without_surface_equals_plain_kernel_bitwise():
     args, depths = kernel_inputs(scene(seed=5))
     color, alpha, depth = layer(np.inf, alpha=0.0)
@@ -169,6 +171,7 @@ def tilted_semi_transparent():
     return layer(depth, alpha=np.linspace(0.2, 1.0, HEIGHT, dtype=np.float32)[:, None])
 
 
+@needs_core
 def test_bitwise_equal_across_thread_counts():
     s, surface = scene(n=80, seed=6), tilted_semi_transparent()
     results = per_thread_count(lambda: [np.array(render(s, surface)[k]) for k in ("image", "alpha", "n_contrib")])
@@ -177,6 +180,7 @@ def test_bitwise_equal_across_thread_counts():
             np.testing.assert_array_equal(a, b)
 
 
+@needs_core
 @pytest.mark.parametrize("env", [("MLX3D_RASTER_ISA", "baseline"), ("MLX3D_RASTER_CULL", "0")])
 def test_bitwise_equal_across_isa_variants_and_culling(monkeypatch, env):
     s, surface = scene(n=80, seed=7), tilted_semi_transparent()
@@ -187,7 +191,7 @@ def test_bitwise_equal_across_isa_variants_and_culling(monkeypatch, env):
         np.testing.assert_array_equal(a, b)
 
 
-@pytest.mark.parametrize("backend", ["cpu", "reference"])
+@pytest.mark.parametrize("backend", [FAST, "mlx", "reference"])
 def test_surface_without_depth_is_a_background_image(backend):
     s = scene(seed=8)
     rng = np.random.default_rng(0)
@@ -213,7 +217,7 @@ def test_every_backend_plans_the_depth_test_in_its_own_rasterizer(backend):
 def test_model_render_forwards_the_surface():
     s = scene(seed=9)
     model = GaussianModel.from_points(s["means"], s["colors"])
-    out = model.render(camera(), background=BACKGROUND, backend="cpu", surface=Surface(*layer(1.0)))
+    out = model.render(camera(), background=BACKGROUND, backend=FAST, surface=Surface(*layer(1.0)))
     np.testing.assert_array_equal(np.array(out["image"]), np.broadcast_to(PLANE_COLOR, (HEIGHT, WIDTH, 3)))
 
 
@@ -249,7 +253,7 @@ def test_gradients_raise():
     args = [mx.array(s[k]) for k in ("means", "quats", "scales", "opacities")]
 
     def loss(means):
-        return render_gaussians(camera(), means, *args[1:], colors=mx.array(s["colors"]), backend="cpu", surface=surface)["image"].sum()
+        return render_gaussians(camera(), means, *args[1:], colors=mx.array(s["colors"]), backend=FAST, surface=surface)["image"].sum()
 
     with pytest.raises(RuntimeError, match="compositing over a surface is forward-only"):
         mx.eval(mx.grad(loss)(args[0]))

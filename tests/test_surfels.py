@@ -16,6 +16,7 @@ from mlx3d.splatting import GaussianModel
 from mlx3d.training import geometry
 from mlx3d.training.trainer import GaussianTrainer, TrainerConfig
 from mlx3d.transforms import matrix_to_quaternion, quaternion_to_matrix
+from core_marks import FAST
 
 
 def front_camera(width=41, height=33, **kw):
@@ -70,7 +71,7 @@ def test_geometry_channels_composite_like_the_analytic_two_layer_case(planar):
         "opacities": mx.array(a.astype(np.float32)),
         "colors": mx.array(np.float32([[1, 0, 0], [0, 1, 0]])),
     }
-    out = render_gaussians(cam, **s, render_depth_variance=True, render_normals=True, planar_depth=planar, backend="cpu")
+    out = render_gaussians(cam, **s, render_depth_variance=True, render_normals=True, planar_depth=planar, backend=FAST)
     i, j = cam.height // 2, cam.width // 2  # the projected means: planar and centre depths agree there
     w = np.array([a[0], a[1] * (1 - a[0])])  # both discs peak (G = 1) at the centre pixel
     mean = (w @ z) / w.sum()
@@ -84,7 +85,7 @@ def test_geometry_channels_composite_like_the_analytic_two_layer_case(planar):
     assert out["stages"] == ("project_ewa", "bin_tiles", "gaussian_normals", f"rasterize_rgb+depth{planes}+depth2+normals")
     # where nothing is hit every geometry channel is 0, and the colour is unchanged by the extra channels
     assert float(out["alpha"][0, 0]) == 0 and not np.array(out["normals"][0, 0]).any() and float(out["depth_variance"][0, 0]) == 0
-    plain = render_gaussians(cam, **s, backend="cpu")
+    plain = render_gaussians(cam, **s, backend=FAST)
     np.testing.assert_allclose(np.array(plain["image"]), np.array(out["image"]), atol=1e-6)
     assert plain["stages"][-1] == "rasterize_rgb" and "normals" not in plain and "depth_variance" not in plain
 
@@ -101,9 +102,9 @@ def test_planar_depth_follows_a_tilted_disc(model):
     origins, dirs = cam.rays()
     t = ((centre - origins) @ normal) / (dirs @ normal)
     truth = (origins + t[..., None] * dirs - cam.center) @ cam.camtoworld[:3, 2]
-    inside = np.array(render_gaussians(cam, **s, render_depth=True, backend="cpu")["alpha"]) > 0.5
-    planar = np.array(render_gaussians(cam, **s, render_depth=True, planar_depth=True, backend="cpu")["depth"])
-    flat = np.array(render_gaussians(cam, **s, render_depth=True, backend="cpu")["depth"])
+    inside = np.array(render_gaussians(cam, **s, render_depth=True, backend=FAST)["alpha"]) > 0.5
+    planar = np.array(render_gaussians(cam, **s, render_depth=True, planar_depth=True, backend=FAST)["depth"])
+    flat = np.array(render_gaussians(cam, **s, render_depth=True, backend=FAST)["depth"])
     assert inside.sum() > 40
     spread = np.abs(truth[inside] - truth[inside].mean()).max()
     assert spread > 0.2  # the disc is steep in depth
@@ -121,7 +122,7 @@ def test_geometry_channels_match_explicit_feature_renders():
         "opacities": mx.array(rng.uniform(0.2, 0.9, n).astype(np.float32)),
     }
     cam = front_camera(48, 40)
-    out = render_gaussians(cam, **s, colors=mx.zeros((n, 3)), render_depth_variance=True, render_normals=True, depth_reference=4.0, backend="cpu")
+    out = render_gaussians(cam, **s, colors=mx.zeros((n, 3)), render_depth_variance=True, render_normals=True, depth_reference=4.0, backend=FAST)
     depth = np.asarray(s["means"])[:, 1] + 4.0
     feats = np.concatenate([depth[:, None], (depth[:, None] - 4.0) ** 2, np.array(facing_normals(cam, s["means"], s["quats"]))], 1)
     ref = np.array(render_gaussian_features(cam, s["means"], s["quats"], s["scales"], s["opacities"], mx.array(feats.astype(np.float32)), normalize=True, backend="reference")["features"])
@@ -152,7 +153,7 @@ def test_geometry_channel_gradients_match_finite_differences():
 
     def loss(means, quats):
         out = render_gaussians(cam, means, quats, mx.array(base["scales"]), mx.array(base["opacities"]), colors=mx.zeros((n, 3)),
-                               render_depth_variance=True, render_normals=True, planar_depth=True, depth_reference=4.0, backend="cpu")
+                               render_depth_variance=True, render_normals=True, planar_depth=True, depth_reference=4.0, backend=FAST)
         return mx.sum(w_var * out["depth_variance"]) + mx.sum(w_n * out["normals"])
 
     g_means, g_quats = mx.grad(loss, argnums=(0, 1))(mx.array(base["means"]), mx.array(base["quats"]))
@@ -193,7 +194,7 @@ def test_normal_consistency_and_depth_variance_tell_surfels_on_a_surface_from_ot
     unprojector = geometry.DepthUnprojector()
 
     def losses(s):
-        out = render_gaussians(cam, **s, render_depth_variance=True, render_normals=True, planar_depth=True, backend="cpu")
+        out = render_gaussians(cam, **s, render_depth_variance=True, render_normals=True, planar_depth=True, backend=FAST)
         nc = geometry.normal_consistency_loss(out["normals"], out["depth"], out["alpha"], cam, unprojector, 0.5)
         dv = geometry.depth_variance_loss(out["depth_variance"], out["alpha"], 0.5, 4.0)
         return float(nc), float(dv)
@@ -214,8 +215,8 @@ def test_normal_consistency_and_depth_variance_tell_surfels_on_a_surface_from_ot
     two = {k: mx.concatenate([front[k], back[k]]) for k in front}
     # oracle: per pixel the front layer weighs a_f and the back one (1 - a_f)·a_b, so the variance of
     # the two depths 0.3 apart is w_f·w_b/(w_f + w_b)²·0.09
-    a_f = np.array(render_gaussians(cam, **front, backend="cpu")["alpha"], np.float64)
-    a_b = np.array(render_gaussians(cam, **back, backend="cpu")["alpha"], np.float64)
+    a_f = np.array(render_gaussians(cam, **front, backend=FAST)["alpha"], np.float64)
+    a_b = np.array(render_gaussians(cam, **back, backend=FAST)["alpha"], np.float64)
     w_f, w_b = a_f, (1 - a_f) * a_b
     covered = w_f + w_b >= 0.5
     expected = np.mean((w_f * w_b / np.maximum(w_f + w_b, 1e-12) ** 2 * 0.09)[covered]) / 16.0

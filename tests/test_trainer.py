@@ -11,6 +11,7 @@ from mlx3d.splatting import GaussianModel
 from mlx3d.training.adam import Adam
 from mlx3d.training.density import add_gaussians_mcmc, densify_and_prune, relocate_dead, relocation_correction, reset_opacities, sgld_noise
 from mlx3d.training.trainer import GaussianTrainer, TrainerConfig, TrainingError, events_at
+from core_marks import needs_core
 from thread_counts import per_thread_count
 
 
@@ -56,7 +57,7 @@ def test_unknown_methods_and_bad_surfel_settings_are_refused():
 
 
 # ------------------------------------------------------------------ Adam
-@pytest.mark.parametrize("backend", ["cpu", "reference"])
+@pytest.mark.parametrize("backend", [pytest.param("cpu", marks=needs_core), "reference"])
 def test_adam_matches_reference_and_edits_rows(backend):
     rng = np.random.default_rng(0)
     x = rng.normal(size=(6, 2)).astype(np.float32)
@@ -81,6 +82,7 @@ def test_adam_matches_reference_and_edits_rows(backend):
     assert not np.array(opt.v["x"])[0].any() and np.array(opt.v["x"])[1].any()
 
 
+@needs_core
 def test_fused_adam_matches_the_mlx_expression_for_any_thread_count():
     """The CPU kernel (one pass) against Adam's MLX expression over 3DGS-like learning rates and
     gradients spanning 12 orders of magnitude, for 4 steps; bitwise equal for 1, 2 and 3 threads."""
@@ -104,6 +106,7 @@ def test_fused_adam_matches_the_mlx_expression_for_any_thread_count():
             np.testing.assert_array_equal(other[key], one[key], err_msg=key)
 
 
+@needs_core
 def test_cpu_adam_is_the_float32_formula_bit_for_bit():
     # the kernels (vectorized, in chunks, written over their inputs) against the formula evaluated in
     # numpy float32, one correctly rounded operation at a time: equal bits, odd sizes, 3 steps
@@ -130,6 +133,7 @@ def _address(a: mx.array) -> int:
     return np.asarray(a).__array_interface__["data"][0]
 
 
+@needs_core
 def test_cpu_adam_writes_over_its_inputs_only_where_nothing_else_holds_them():
     # the kernels reuse the old moments' memory, and the old parameters' when the caller dropped them
     # (no fresh pages per step); an array that shares a moment's memory (a view), a parameter the caller
@@ -277,6 +281,7 @@ def numpy_screen_statistics(accum, count, radius, visible, grad2d, radii, width,
     return accum, count + np.asarray(visible), np.maximum(radius, np.asarray(radii))
 
 
+@needs_core
 def test_screen_statistics_kernel_is_the_numpy_expression_bit_for_bit_for_any_thread_count():
     from mlx3d import native
 
@@ -302,9 +307,9 @@ def test_a_training_step_adds_its_view_to_the_densification_statistics():
     seen = []
 
     class Recording(GaussianTrainer):
-        def add_screen_statistics(self, camera, visible, grad2d, radii):
+        def add_screen_statistics(self, camera, visible, grad2d, radii, backend="auto"):
             seen.append((np.array(visible), np.array(grad2d), np.array(radii)))
-            super().add_screen_statistics(camera, visible, grad2d, radii)
+            super().add_screen_statistics(camera, visible, grad2d, radii, backend)
 
     trainer = Recording(model, TrainerConfig(steps=10, densify_from=4, densify_every=5, densify_until=5), scene_extent=3.0)
     want = [trainer.grad_accum.copy(), trainer.grad_count.copy(), trainer.max_radii.copy()]
@@ -312,12 +317,38 @@ def test_a_training_step_adds_its_view_to_the_densification_statistics():
         trainer.step(cams[i], targets[i])
         want = numpy_screen_statistics(*want, *seen[-1], cams[i].width, cams[i].height)
     assert len(seen) == 3 and seen[0][0].any() and np.abs(seen[0][1]).max() > 0
+    from mlx3d.render import resolve_backend
+
+    exact = resolve_backend("auto") == "cpu"  # the C++ pass: numpy's float64 bit for bit; MLX: float32 sums
     for a, b in zip((trainer.grad_accum, trainer.grad_count, trainer.max_radii), want):
-        np.testing.assert_array_equal(a, b)
+        np.testing.assert_allclose(a, b, rtol=0 if exact else 1e-6)
     # after the last densification (step 5) no step gathers them
     infos = [trainer.step(cams[i], targets[i]) for i in range(3)]
     assert infos[1]["densify"] is not None and len(seen) == 5
     assert "screen_statistics" in infos[1]["stages"] and "screen_statistics" not in infos[2]["stages"]
+
+
+@pytest.mark.parametrize("backend", ["mlx", pytest.param("cpu", marks=needs_core)])
+def test_screen_statistics_of_each_backend_are_the_numpy_expression(backend):
+    from mlx3d.training.statistics import ScreenStatistics
+
+    rng = np.random.default_rng(4)
+    n, camera = 5001, Camera(width=648, height=420, fx=500.0, fy=500.0, cx=324.0, cy=210.0)
+    stats, want = ScreenStatistics(n), [np.zeros(n), np.zeros(n), np.zeros(n)]
+    for view in range(5):
+        visible = rng.random(n) < 0.7
+        grad2d = (rng.standard_normal((n, 2)) * 10.0 ** rng.uniform(-9, 1, (n, 1))).astype(np.float32)
+        grad2d[~visible & (rng.random(n) < 0.5)] = np.nan  # ignored where not visible
+        radii = np.where(visible, rng.integers(0, 300, n), 0).astype(np.int32)
+        stats.add(camera, mx.array(visible), mx.array(grad2d), mx.array(radii), backend)
+        want = numpy_screen_statistics(*want, visible, grad2d, radii, 648, 420)
+        if view == 2:  # reading folds the views so far; later views add to the folded arrays
+            np.testing.assert_allclose(stats.arrays()[0], want[0], rtol=1e-6)
+    for a, b in zip(stats.arrays(), want):
+        assert a.dtype == np.float64
+        np.testing.assert_allclose(a, b, rtol=0 if backend == "cpu" else 1e-6)
+    stats.set(1, np.ones(n))
+    assert (stats.arrays()[1] == 1).all()
 
 
 def test_nan_guard_keeps_the_last_good_parameters():
@@ -337,7 +368,7 @@ def test_nan_guard_keeps_the_last_good_parameters():
     assert trainer.optimizer.step_count == 1 and trainer.step(cams[2], targets[2])["step"] == 2
 
 
-@pytest.mark.parametrize("backend", ["cpu", "reference"])
+@pytest.mark.parametrize("backend", [pytest.param("cpu", marks=needs_core), "reference", "mlx"])
 def test_all_finite_agrees_with_numpy_isfinite(backend):
     from mlx3d.training.adam import all_finite
 
