@@ -8,6 +8,7 @@ import mlx.core as mx
 import numpy as np
 import pytest
 
+from core_marks import needs_core
 from mlx3d.errors import TransformError
 from mlx3d.transforms import (
     compose_affine,
@@ -160,6 +161,7 @@ def test_bad_transforms_are_refused(matrix, words):
         transform_gaussians(matrix, *random_gaussians(3))
 
 
+@needs_core
 @pytest.mark.parametrize("name", ["nonuniform", "shear", "mirror_scaled"])
 def test_native_kernel_matches_numpy_reference_on_hard_cases(name):
     a = AFFINES[name] @ compose_affine((1.0, 1.0, 1.0 + 1e-9), (0, 0, 0), (0, 0, 0))  # force the general path
