@@ -142,6 +142,7 @@ def main() -> None:
     args = p.parse_args()
     if args.child:
         return child(args)
+    args.demo = os.path.abspath(args.demo) if args.demo else ""
     if args.demo and not os.path.isdir(args.demo):
         print(f"note: no demo dataset at {args.demo} (run `make demo` first); the demo rows are left out", file=sys.stderr)
     sampler = LoadSampler()

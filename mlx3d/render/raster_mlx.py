@@ -18,9 +18,13 @@ products are rounded in another order, so values agree to float precision,
 not bitwise). A pixel stops at its first kept entry that would take T below
 1e-4, as in the kernels. After each batch a tile leaves the active set when
 its range is used up or all its pixels have stopped (one small read of the
-stop flags per batch), and B grows as tiles leave, so that every batch holds
-about ``BATCH_ELEMENTS`` (pixel, entry) pairs: memory stays bounded and the
-work is about the sum over tiles of pixels x entries visited.
+stop flags per batch). Each batch's size B is set from the binning alone (the
+tiles whose range reaches it), so that a batch holds at most about
+``BATCH_ELEMENTS`` (pixel, entry) pairs: memory stays bounded, and the
+arithmetic (so the result) does not depend on how the tiles are shared out.
+On the CPU the tiles are shared between one group per core (``MLX3D_NUM_THREADS``),
+each on its own MLX stream, whose batches run side by side. The work is about
+the sum over the tiles of their pixels times the entries they visit.
 
 The backward pass (an ``mx.custom_function`` vjp) replays the same batches
 (the same schedule and arithmetic, so the same contributors) and uses, per
@@ -67,7 +71,6 @@ class _Tiles:
     def pixels(self) -> int:
         return self.tile * self.tile
 
-    @functools.lru_cache(maxsize=4)  # noqa: B019 - one grid per render
     def bounds(self, budget: int) -> list:
         """(start, size) of the depth batches: each as large as ``budget`` (pixel, entry) pairs allow
         over the tiles whose range reaches it."""
