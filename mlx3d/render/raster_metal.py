@@ -87,15 +87,19 @@ _PIXEL_PREAMBLE = """
     const int pix = py * WIDTH + px;
 """
 
-_FORWARD_BODY = """
+# The forward pass of one pixel; the surface forward (mlx3d.render.surface) fills in the marked places
+# (SETUP, BEFORE_ENTRY, ON_STOP, AFTER_ENTRIES), which the plain forward leaves empty.
+_COMPOSITE_BODY = """
     float acc[CH];
     for (int ch = 0; ch < CH; ++ch) {
         acc[ch] = 0.0f;
     }
     float T = 1.0f;
     int n_last = 0;
+SETUP
     for (int k = start; k < end; ++k) {
         const int g = flatten_ids[k];
+BEFORE_ENTRY
         const float dx = means2d[2 * g] - fx;
         const float dy = means2d[2 * g + 1] - fy;
         const float power = rm_power(conics[3 * g], conics[3 * g + 1], conics[3 * g + 2], dx, dy);
@@ -105,6 +109,7 @@ _FORWARD_BODY = """
         }
         const float next_T = rm_next_T(T, alpha);
         if (next_T < RM_T_MIN) {
+ON_STOP
             break;
         }
         const float w = alpha * T;
@@ -114,6 +119,7 @@ _FORWARD_BODY = """
         T = next_T;
         n_last = k - start + 1;
     }
+AFTER_ENTRIES
     for (int ch = 0; ch < CH; ++ch) {
         out_accum[pix * CH + ch] = acc[ch];
     }
@@ -177,62 +183,27 @@ _BACKWARD_BODY = """
 # The surface forward (mlx3d.render.surface): before the first entry whose depth is not below the pixel's
 # surface depth (after the last if none), a pixel that has not stopped takes accum += T * colour,
 # T *= 1 - surface alpha, and stops if T < RM_T_MIN.
-_SURFACE_BODY = """
-    float acc[CH];
-    for (int ch = 0; ch < CH; ++ch) {
-        acc[ch] = 0.0f;
-    }
-    float T = 1.0f;
-    int n_last = 0;
-    bool passed = false;
-    bool stopped = false;
-    const float s_depth = surface_depth[pix];
-    const float s_alpha = surface_alpha[pix];
-    for (int k = start; k < end; ++k) {
-        const int g = flatten_ids[k];
-        if (!passed && !(depths[g] < s_depth)) {
-            passed = true;
+_SURFACE_EVENT = """
             for (int ch = 0; ch < CH; ++ch) {
                 acc[ch] = acc[ch] + T * surface_color[pix * CH + ch];
             }
-            T = rm_next_T(T, s_alpha);
+            T = rm_next_T(T, s_alpha);"""
+_SURFACE_PARTS = {
+    "SETUP": """    bool passed = false;
+    bool stopped = false;
+    const float s_depth = surface_depth[pix];
+    const float s_alpha = surface_alpha[pix];""",
+    "BEFORE_ENTRY": """        if (!passed && !(depths[g] < s_depth)) {
+            passed = true;""" + _SURFACE_EVENT + """
             if (T < RM_T_MIN) {
                 stopped = true;
                 break;
             }
-        }
-        const float dx = means2d[2 * g] - fx;
-        const float dy = means2d[2 * g + 1] - fy;
-        const float power = rm_power(conics[3 * g], conics[3 * g + 1], conics[3 * g + 2], dx, dy);
-        const float alpha = rm_alpha(opacities[g], rm_exp(power), power);
-        if (!(alpha > 0.0f)) {
-            continue;
-        }
-        const float next_T = rm_next_T(T, alpha);
-        if (next_T < RM_T_MIN) {
-            stopped = true;
-            break;
-        }
-        const float w = alpha * T;
-        for (int ch = 0; ch < CH; ++ch) {
-            acc[ch] = acc[ch] + features[g * CH + ch] * w;
-        }
-        T = next_T;
-        n_last = k - start + 1;
-    }
-    if (!passed && !stopped) {
-        for (int ch = 0; ch < CH; ++ch) {
-            acc[ch] = acc[ch] + T * surface_color[pix * CH + ch];
-        }
-        T = rm_next_T(T, s_alpha);
-    }
-    for (int ch = 0; ch < CH; ++ch) {
-        out_accum[pix * CH + ch] = acc[ch];
-    }
-    out_alpha[pix] = 1.0f - T;
-    out_last[pix] = n_last;
-    out_final_T[pix] = T;
-"""
+        }""",
+    "ON_STOP": "            stopped = true;",
+    "AFTER_ENTRIES": """    if (!passed && !stopped) {""" + _SURFACE_EVENT.replace("\n    ", "\n") + """
+    }""",
+}
 
 
 def metal_available() -> bool:
@@ -253,9 +224,16 @@ def kernel_header() -> str:
     return _HEADER
 
 
+def _composite_source(parts: dict) -> str:
+    body = _COMPOSITE_BODY
+    for marker in ("SETUP", "BEFORE_ENTRY", "ON_STOP", "AFTER_ENTRIES"):
+        body = body.replace(marker + "\n", parts[marker] + "\n" if marker in parts else "")
+    return _PIXEL_PREAMBLE + body
+
+
 def forward_source() -> str:
     """Body of the forward kernel (one thread per pixel)."""
-    return _PIXEL_PREAMBLE + _FORWARD_BODY
+    return _composite_source({})
 
 
 def backward_source() -> str:
@@ -265,7 +243,7 @@ def backward_source() -> str:
 
 def surface_source() -> str:
     """Body of the surface forward kernel (one thread per pixel)."""
-    return _PIXEL_PREAMBLE + _SURFACE_BODY
+    return _composite_source(_SURFACE_PARTS)
 
 
 def _metal_kernel(**kwargs):
