@@ -1,6 +1,8 @@
 """``needs_core``: the mark of tests about the compiled module ``mlx3d._core`` itself (its kernels, their
 threads and bits). They skip, with the reason, where the module is missing or turned off
 (``MLX3D_NO_CORE``, as ``make test-pure`` runs the suite); everything else runs either way.
+``too_slow_without_core``: the mark of the few tests whose long trainings would take most of CI's time on the
+pure MLX path (its trainer is the same code, which the other training tests run there).
 ``FAST``: the backend a test uses for "the fast renderer": 'cpu' (the C++ kernels), or 'mlx' where
 the compiled module is not available."""
 
@@ -10,4 +12,9 @@ from mlx3d import native
 
 needs_core = pytest.mark.skipif(not native.available(), reason="tests mlx3d._core itself, which is not available here (not built, or MLX3D_NO_CORE is set)")
 
+too_slow_without_core = pytest.mark.skipif(
+    not native.available(),
+    reason="trains 700 steps on a 24,000-Gaussian outdoor scene, three times: over 25 minutes on the pure MLX path "
+    "(the same trainer code, which the other training tests run there)",
+)
 FAST = "cpu" if native.available() else "mlx"
