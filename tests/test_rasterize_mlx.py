@@ -103,7 +103,7 @@ def test_skip_rules_and_stops():
     np.testing.assert_allclose(accum, want[0], atol=FWD_ATOL)
     np.testing.assert_allclose(alpha, want[1], atol=FWD_ATOL)
     np.testing.assert_array_equal(last, want[2])
-    assert last[3, 3] < 4 and alpha[3, 3] > 0.99 and last[6, 1] == 5  # stopped before the last layer; the point drawn where it lies
+    assert last[3, 3] < 4 and alpha[3, 3] > 0.98 and last[6, 1] == 5  # stopped before the last layer; the point drawn where it lies
 
 
 def test_nan_gaussians_are_skipped():
