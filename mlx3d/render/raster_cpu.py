@@ -32,7 +32,7 @@ import threading
 import mlx.core as mx
 import numpy as np
 
-__all__ = ["rasterize_cpu", "rasterize_cpu_surface", "set_num_threads", "get_num_threads", "prepare_inputs", "surface_forward_only"]
+__all__ = ["rasterize_cpu", "rasterize_cpu_surface", "set_num_threads", "get_num_threads", "prepare_inputs", "surface_forward_only", "surface_layer"]
 
 _ENV_THREADS = "MLX3D_NUM_THREADS"
 _lock = threading.Lock()
@@ -252,6 +252,17 @@ def rasterize_cpu_surface(
 
 
 _SURFACE_INPUTS = ("depths", "surface_color", "surface_alpha", "surface_depth")
+
+
+def surface_layer(depths, surface_color, surface_alpha, surface_depth, n: int, height: int, width: int, channels: int) -> list:
+    """The surface variants' extra inputs as float32 arrays, checked by shape: depths (N,), colour (H,W,C),
+    alpha and depth (H,W); ValueError naming the input otherwise."""
+    shapes = ((n,), (height, width, channels), (height, width), (height, width))
+    layer = [_float32(a, name) for a, name in zip((depths, surface_color, surface_alpha, surface_depth), _SURFACE_INPUTS)]
+    for name, a, shape in zip(_SURFACE_INPUTS, layer, shapes):
+        if tuple(a.shape) != shape:
+            raise ValueError(f"{name} must have shape {shape}, got {tuple(a.shape)}")
+    return layer
 
 
 def surface_forward_only(composite, name: str, *inputs):

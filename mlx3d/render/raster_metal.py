@@ -42,7 +42,7 @@ from pathlib import Path
 
 import mlx.core as mx
 
-from .raster_cpu import prepare_inputs, surface_forward_only
+from .raster_cpu import prepare_inputs, surface_forward_only, surface_layer
 
 __all__ = [
     "rasterize_metal", "rasterize_metal_surface", "metal_available", "kernel_header", "forward_source", "backward_source",
@@ -405,13 +405,7 @@ def rasterize_metal_surface(
     means2d, conics, features, opacities, tile_offsets, flatten_ids, width, height, tile_size = _checked(
         (means2d, conics, features, opacities, tile_offsets, flatten_ids, width, height, tile_size), False)
     channels = features.shape[1]
-    layer = []
-    for name, a, shape in zip(("depths", "surface_color", "surface_alpha", "surface_depth"), (depths, surface_color, surface_alpha, surface_depth),
-                              ((means2d.shape[0],), (height, width, channels), (height, width), (height, width))):
-        a = mx.array(a, dtype=mx.float32) if not isinstance(a, mx.array) else a.astype(mx.float32)
-        if tuple(a.shape) != shape:
-            raise ValueError(f"{name} must have shape {shape}, got {tuple(a.shape)}")
-        layer.append(a)
+    layer = surface_layer(depths, surface_color, surface_alpha, surface_depth, means2d.shape[0], height, width, channels)
     if _nothing_drawn(means2d, flatten_ids, height, width, channels) is not None:
         return layer[1], layer[2], mx.zeros((height, width), dtype=mx.int32)
     def composite(*inputs):

@@ -42,7 +42,7 @@ from dataclasses import dataclass
 import mlx.core as mx
 import numpy as np
 
-from .raster_cpu import prepare_inputs, surface_forward_only
+from .raster_cpu import prepare_inputs, surface_forward_only, surface_layer
 
 __all__ = ["rasterize_mlx", "rasterize_mlx_surface", "BATCH_ELEMENTS"]
 
@@ -461,13 +461,7 @@ def rasterize_mlx_surface(
         means2d, conics, features, opacities, tile_offsets, flatten_ids, width, height, tile_size, False
     )
     grid = _Tiles.of(tile_offsets, width, height, tile_size)
-    arrays = [mx.array(a, dtype=mx.float32) for a in (depths, surface_color, surface_alpha, surface_depth)]
-    if arrays[0].shape != (means2d.shape[0],):
-        raise ValueError(f"depths must have shape (N,) = ({means2d.shape[0]},), got {tuple(arrays[0].shape)}")
-    for name, a, shape in zip(("surface_color", "surface_alpha", "surface_depth"), arrays[1:],
-                              ((height, width, features.shape[1]), (height, width), (height, width))):
-        if tuple(a.shape) != shape:
-            raise ValueError(f"{name} must have shape {shape}, got {tuple(a.shape)}")
+    arrays = surface_layer(depths, surface_color, surface_alpha, surface_depth, means2d.shape[0], height, width, features.shape[1])
     surface = (arrays[0], grid.from_image(arrays[1]), grid.from_image(arrays[2]), grid.from_image(arrays[3]))
 
     def composite(means2d, conics, features, opacities):
