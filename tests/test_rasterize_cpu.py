@@ -334,13 +334,13 @@ def assert_grads_close(got, want, name):
     assert (err <= bound).all(), f"{name}: got {got[worst]} want {want[worst]} at {worst} (scale {scale})"
 
 
-@pytest.mark.parametrize(
-    "seed,n,channels,opacity,sigma,width,height,hard",
-    [
-        (10, 12, 3, (0.1, 1.0), (0.8, 3.0), 22, 19, False),  # mostly translucent, partial tiles
-        (30, 30, 1, (0.7, 1.4), (1.5, 3.5), 16, 16, True),  # clamped pairs and stopped pixels
-    ],
-)
+FD_CASES = [  # seed, n, channels, opacity, sigma, width, height, hard (the rasterizers' finite-difference scenes)
+    (10, 12, 3, (0.1, 1.0), (0.8, 3.0), 22, 19, False),  # mostly translucent, partial tiles
+    (30, 30, 1, (0.7, 1.4), (1.5, 3.5), 16, 16, True),  # clamped pairs and stopped pixels
+]
+
+
+@pytest.mark.parametrize("seed,n,channels,opacity,sigma,width,height,hard", FD_CASES)
 def test_gradients_match_finite_differences(seed, n, channels, opacity, sigma, width, height, hard):
     tile = 8
     scene = smooth_scene(seed, n, width, height, channels, tile, opacity, sigma, hard)

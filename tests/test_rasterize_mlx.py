@@ -12,7 +12,7 @@ from mlx3d import native
 from mlx3d.render import raster_mlx
 from mlx3d.render.raster_cpu import set_num_threads
 from mlx3d.render.raster_mlx import rasterize_mlx
-from test_rasterize_cpu import FWD_ATOL, assert_grads_close, bin_scene, fd_grads, oracle, random_scene, smooth_scene
+from test_rasterize_cpu import FD_CASES, FWD_ATOL, assert_grads_close, bin_scene, fd_grads, oracle, random_scene, smooth_scene
 
 
 def run(scene, width, height, tile=16, **kw):
@@ -40,13 +40,7 @@ def test_forward_matches_oracle(seed, n, channels, tile, width, height):
     assert want_alpha.max() > 0.5 and (want_last > 0).mean() > 0.5
 
 
-@pytest.mark.parametrize(
-    "seed,n,channels,opacity,sigma,width,height,hard",
-    [
-        (10, 12, 3, (0.1, 1.0), (0.8, 3.0), 22, 19, False),  # mostly translucent, partial tiles
-        (30, 30, 1, (0.7, 1.4), (1.5, 3.5), 16, 16, True),  # clamped pairs and stopped pixels
-    ],
-)
+@pytest.mark.parametrize("seed,n,channels,opacity,sigma,width,height,hard", FD_CASES)
 def test_gradients_match_finite_differences(seed, n, channels, opacity, sigma, width, height, hard):
     tile = 8
     scene = smooth_scene(seed, n, width, height, channels, tile, opacity, sigma, hard)
