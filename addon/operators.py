@@ -12,7 +12,7 @@ import bpy
 from bpy.props import BoolProperty, CollectionProperty, EnumProperty, FloatProperty, FloatVectorProperty, IntProperty, IntVectorProperty, StringProperty
 from bpy_extras.io_utils import ExportHelper, ImportHelper
 
-from . import benchmark, capture, ellipsoids, scene_render, train, workflows
+from . import benchmark, capture, display, scene_render, train, workflows
 from .splat_object import is_splat_object
 
 # Folder settings that may start with "//" (relative to the .blend); Blender 5.0 asks for the flag.
@@ -235,7 +235,7 @@ class MLX3D_OT_show_ellipsoids(bpy.types.Operator):
         return is_splat_object(context.active_object)
 
     def execute(self, context):
-        ellipsoids.set_ellipsoids(context.active_object, self.show)
+        display.set_ellipsoids(context.active_object, self.show)
         return {"FINISHED"}
 
 

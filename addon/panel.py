@@ -5,7 +5,7 @@ from __future__ import annotations
 import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty
 
-from . import ellipsoids, operators, train, workflows
+from . import display, operators, train, workflows
 from .splat_object import is_splat_object
 
 
@@ -103,7 +103,7 @@ class VIEW3D_PT_mlx3d_splats(_SplatsTab, bpy.types.Panel):
             if lo is not None:
                 box.label(text="Min: " + "  ".join(f"{v:.3g}" for v in lo))
                 box.label(text="Max: " + "  ".join(f"{v:.3g}" for v in hi))
-            shown = ellipsoids.has_ellipsoids(obj)
+            shown = display.has_ellipsoids(obj)
             op = box.operator(operators.MLX3D_OT_show_ellipsoids.bl_idname, text="Ellipsoids", icon="MESH_UVSPHERE", depress=shown)
             op.show = not shown
         else:

@@ -1,54 +1,29 @@
-"""Splat objects: Blender point clouds whose point attributes hold every 3DGS PLY property.
+"""Splat objects: Blender point clouds in Blender's own Gaussian-splat layout.
 
-Attributes (POINT domain). The raw ones are the source of truth for export:
-
-==============  ============  ==============================================
-attribute       type          PLY properties
-==============  ============  ==============================================
-position        FLOAT_VECTOR  x y z (object space)
-f_dc            FLOAT_VECTOR  f_dc_0..2
-f_rest_<i>      FLOAT         f_rest_i (channel-major, as in the file)
-opacity         FLOAT         opacity (logit)
-log_scale       FLOAT_VECTOR  scale_0..2 (log standard deviations)
-rot             QUATERNION    rot_0..3 (w,x,y,z as stored, not normalised)
-<name>          FLOAT / INT   any other property (nx ny nz included); its PLY
-                              type is kept in the data's ``mlx3d_ply_types``
-==============  ============  ==============================================
-
-Display attributes are derived from those and never exported: ``radius``,
-``splat_color`` (linear RGB from f_dc, alpha = opacity) and ``rotation`` (the
-unit quaternion) for the viewport, Cycles and the ellipsoid display; on
-Blender 5.3+ also ``scale``, ``radiance:base`` and ``radiance:sh_<k>``,
-completing the layout of Blender's own splat importer, so its native
-renderer draws our objects. Point clouds made by that importer (without the raw
-attributes) are read from those attributes instead.
-
-Bulk data moves only through ``foreach_get``/``foreach_set`` on contiguous
-float32/int32 arrays. This module imports ``bpy``; the math lives in ``mlx3d``.
+The layout, and what each Blender version gets, is in ``splat_layout``. This
+module reads any splat point cloud into ``SplatArrays`` (Blender's importer's,
+ours, one made or edited by Geometry Nodes, or this add-on's earlier layout)
+and writes ``SplatArrays`` into one. Bulk data moves only through
+``foreach_get``/``foreach_set`` on contiguous float32/int32 arrays. This module
+imports ``bpy``; the math lives in ``mlx3d``.
 """
 
 from __future__ import annotations
 
 import json
-import re
 
 import bpy
 import numpy as np
 from mathutils import Matrix
 
 from mlx3d.io import SplatArrays
-from mlx3d.splatting import C0, transform_splats
+from mlx3d.splatting import transform_splats
 
-RAW_ATTRIBUTES = ("f_dc", "opacity", "log_scale", "rot")
-TYPES_KEY = "mlx3d_ply_types"
-MATERIAL_NAME = "MLX3D Splat"
-NATIVE_SPLAT_VERSION = (5, 3, 0)
-_DISPLAY = {"radius", "splat_color", "rotation"}
-_NATIVE = {"scale", "rotation", "radiance:base"}
-_NATIVE_SH = re.compile(r"^radiance:sh_(\d+)$")
-_F_REST = re.compile(r"^f_rest_(\d+)$")
+from . import display
+from . import splat_layout as L
+
 # data_type -> (components, foreach key, numpy dtype)
-_LAYOUT = {
+_TYPES = {
     "FLOAT": (1, "value", np.float32),
     "INT": (1, "value", np.int32),
     "INT8": (1, "value", np.int8),
@@ -56,9 +31,13 @@ _LAYOUT = {
     "FLOAT_VECTOR": (3, "vector", np.float32),
     "QUATERNION": (4, "value", np.float32),
     "FLOAT_COLOR": (4, "color", np.float32),
-    "FLOAT4": (4, "vector", np.float32),  # Blender 5.3+ (radiance:base)
+    "FLOAT4": (4, "vector", np.float32),
 }
 _INT_TYPES = {np.dtype(t) for t in (np.int8, np.uint8, np.int16, np.uint16, np.int32)}
+# the native attributes' accepted data types (radiance:base: FLOAT4, or FLOAT_COLOR where FLOAT4 is missing)
+_EXPECTED = {L.BASE: ("FLOAT4", "FLOAT_COLOR"), L.SCALE: ("FLOAT_VECTOR",), L.ROTATION: ("QUATERNION",)}
+# an alpha of 0 or 1 has no logit: it is clipped to [eps, 1 - eps], eps = float32's gap below 1 (logits ±16.6)
+_ALPHA_EPS = float(np.finfo(np.float32).epsneg)
 
 
 class SplatObjectError(ValueError):
@@ -69,7 +48,7 @@ class SplatObjectError(ValueError):
 def _get(attributes, name: str, n: int, out: np.ndarray | None = None) -> np.ndarray:
     """Attribute values as (n,) or (n, components); ``out`` is a contiguous buffer to fill."""
     attr = attributes[name]
-    comps, key, dtype = _LAYOUT[attr.data_type]
+    comps, key, dtype = _TYPES[attr.data_type]
     if out is None:
         out = np.empty(n * comps, dtype=dtype)
     attr.data.foreach_get(key, out.reshape(-1))
@@ -83,16 +62,65 @@ def _set(attributes, name: str, data_type: str, values: np.ndarray) -> None:
         attr = None
     if attr is None:
         attr = attributes.new(name, data_type, "POINT")
-    comps, key, dtype = _LAYOUT[data_type]
+    comps, key, dtype = _TYPES[data_type]
     attr.data.foreach_set(key, np.ascontiguousarray(values, dtype=dtype).ravel())
 
 
+def _remove(attributes, names) -> None:
+    for name in list(names):
+        attr = attributes.get(name)
+        if attr is not None:
+            attributes.remove(attr)
+
+
+def _layout_of(attributes) -> str | None:
+    """'native', 'legacy' (this add-on's earlier raw layout) or None."""
+    if all(a in attributes for a in L.NATIVE):
+        return "native"
+    if all(a in attributes for a in L.LEGACY_RAW):
+        return "legacy"
+    return None
+
+
+def _has_modifiers(obj) -> bool:
+    """Whether the object has modifiers (other than the display) that may change what it holds."""
+    return any(m.show_viewport and not display.is_display(m) for m in obj.modifiers)
+
+
+def _evaluated_cloud(obj):
+    """The point cloud Blender shows for ``obj``: its data-block, or with modifiers the
+    evaluated geometry (the add-on's own display modifier left out)."""
+    if not _has_modifiers(obj):
+        return obj.data
+    ours = [m for m in obj.modifiers if display.is_display(m) and m.show_viewport]
+    for m in ours:
+        m.show_viewport = False
+    try:
+        depsgraph = bpy.context.evaluated_depsgraph_get()
+        depsgraph.update()
+        evaluated = obj.evaluated_get(depsgraph)
+        return evaluated.data if evaluated.type == "POINTCLOUD" else None
+    finally:
+        for m in ours:
+            m.show_viewport = True
+
+
 def is_splat_object(obj) -> bool:
-    """True for point cloud objects holding splats (ours, or Blender 5.3's native ones)."""
+    """True for point cloud objects holding splats: Blender's own Gaussian splats (from its
+    importer, ours, or Geometry Nodes) or the add-on's earlier layout."""
     if obj is None or obj.type != "POINTCLOUD":
         return False
-    names = obj.data.attributes.keys()
-    return all(a in names for a in RAW_ATTRIBUTES) or all(a in names for a in _NATIVE)
+    if _layout_of(obj.data.attributes):
+        return True
+    if _has_modifiers(obj):
+        evaluated = obj.evaluated_get(bpy.context.evaluated_depsgraph_get())
+        return evaluated.type == "POINTCLOUD" and _layout_of(evaluated.data.attributes) is not None
+    return False
+
+
+def has_splat_attributes(obj) -> bool:
+    """Whether a point cloud carries any of the splat attributes (complete or not)."""
+    return obj is not None and obj.type == "POINTCLOUD" and any(a in obj.data.attributes for a in L.NATIVE + L.LEGACY_RAW)
 
 
 def splat_count(obj) -> int:
@@ -101,35 +129,117 @@ def splat_count(obj) -> int:
 
 # --------------------------------------------------------------------------- reading
 def read_splats(obj) -> tuple[SplatArrays, list[str]]:
-    """The object's splats in object space, and warnings (attributes not exported)."""
-    if not is_splat_object(obj):
-        raise SplatObjectError(f"'{obj.name}' is not a splat object (a point cloud with f_dc, opacity, log_scale and rot attributes)")
-    attributes = obj.data.attributes
-    n = splat_count(obj)
+    """The splats Blender shows for ``obj`` (modifiers applied), in object space, and warnings
+    (attributes not exported). Raises ``SplatObjectError`` naming the object and attribute
+    when one is missing or malformed."""
+    if obj is None or obj.type != "POINTCLOUD":
+        raise SplatObjectError(f"'{getattr(obj, 'name', obj)}' is not a point cloud, so it holds no splats")
+    cloud = _evaluated_cloud(obj)
+    attributes = cloud.attributes if cloud is not None else {}
+    layout = _layout_of(attributes)
+    if layout is None:
+        present = [a for a in L.NATIVE if a in attributes]
+        missing = [a for a in L.NATIVE if a not in attributes]
+        what = f"it lacks {', '.join(missing)}" if present else "it has none of its attributes"
+        raise SplatObjectError(f"'{obj.name}' is not a Gaussian-splat point cloud ({', '.join(L.NATIVE)}, radiance:sh_*): {what}")
+    n = len(cloud.points)
     means = _get(attributes, "position", n)
-    if all(a in attributes for a in RAW_ATTRIBUTES):
-        arrays, used = _read_raw(attributes, n, means, obj.name)
-    else:
-        arrays, used = _read_native(attributes, n, means, obj.name)
-    types = json.loads(obj.data.get(TYPES_KEY, "{}"))
-    skipped = []
-    order = [name for name in types if name in attributes] + [a.name for a in attributes if a.name not in types]
-    for name in order:
-        attr = attributes[name]
-        if name in used or name == "position" or name.startswith(".") or name in _DISPLAY or name in _NATIVE or _NATIVE_SH.match(name):
-            continue
-        if attr.domain != "POINT" or _LAYOUT.get(attr.data_type, (0,))[0] != 1:
-            skipped.append(f"{name} ({attr.data_type})")
-            continue
-        values = _get(attributes, name, n)
-        ply_type = np.dtype(types.get(name, values.dtype.str))
-        arrays.extra[name] = values.view(ply_type) if ply_type.itemsize == values.dtype.itemsize and ply_type.kind in "iu" else values.astype(ply_type)
-    warnings = [f"'{obj.name}': attributes {', '.join(skipped)} are not PLY scalars and are not exported"] if skipped else []
-    return arrays, warnings
+    arrays, used = (_read_native if layout == "native" else _read_legacy)(attributes, n, means, obj.name)
+    for field in ("means", "sh_dc", "sh_rest"):
+        if not np.isfinite(getattr(arrays, field)).all():
+            raise SplatObjectError(f"'{obj.name}': {_attribute_of(field, layout)} has NaN or infinite values; nothing was written")
+    warnings = _read_extras(cloud, attributes, n, used, arrays)
+    return arrays, [f"'{obj.name}': {w}" for w in warnings]
 
 
-def _read_raw(attributes, n, means, name):
-    rest_ids = sorted(int(m.group(1)) for m in (_F_REST.match(a.name) for a in attributes) if m)
+def _attribute_of(field: str, layout: str) -> str:
+    if field == "means":
+        return "position"
+    if layout == "native":
+        return {"sh_dc": L.BASE, "sh_rest": "radiance:sh_*"}[field]
+    return {"sh_dc": "f_dc", "sh_rest": "f_rest_*"}[field]
+
+
+def _check_type(attributes, name: str, obj_name: str) -> None:
+    attr = attributes[name]
+    allowed = _EXPECTED.get(name, ("FLOAT_VECTOR",))
+    if attr.domain != "POINT" or attr.data_type not in allowed:
+        raise SplatObjectError(
+            f"'{obj_name}': attribute '{name}' is {attr.data_type} on {attr.domain}; "
+            f"a splat needs {' or '.join(allowed)} on POINT")
+
+
+def _raw_where_consistent(attributes, name: str, n: int, native: np.ndarray, derive) -> np.ndarray | None:
+    """The hidden raw values of ``name`` (n, k) for the points whose native value still equals
+    ``derive(raw)`` bit for bit, else None; a point whose native value changed keeps NaN."""
+    attr = attributes.get(name)
+    if attr is None or attr.domain != "POINT" or attr.data_type not in _TYPES:
+        return None
+    raw = _get(attributes, name, n).reshape(n, -1)
+    if raw.shape[1] != native.reshape(n, -1).shape[1]:
+        return None
+    same = (derive(raw).reshape(n, -1) == native.reshape(n, -1)).all(axis=1)
+    return np.where(same[:, None], raw, np.nan)
+
+
+def _sigmoid32(logits: np.ndarray) -> np.ndarray:
+    return (1.0 / (1.0 + np.exp(-logits.astype(np.float64)))).astype(np.float32)
+
+
+def _exp32(log_scales: np.ndarray) -> np.ndarray:
+    return np.exp(log_scales.astype(np.float64)).astype(np.float32)
+
+
+def _normalised32(quats: np.ndarray) -> np.ndarray:
+    q = quats.astype(np.float64)
+    return (q / np.maximum(np.linalg.norm(q, axis=1, keepdims=True), 1e-30)).astype(np.float32)
+
+
+def _fill(raw: np.ndarray | None, derived: np.ndarray) -> np.ndarray:
+    """Raw values where they are kept (not NaN), ``derived`` elsewhere."""
+    if raw is None:
+        return derived
+    raw = raw.reshape(derived.shape)
+    return np.where(np.isnan(raw), derived, raw).astype(np.float32)
+
+
+def _read_native(attributes, n, means, name):
+    """Raw 3DGS values from Blender's splat attributes (and the hidden raw values kept beside them)."""
+    for a in L.NATIVE:
+        _check_type(attributes, a, name)
+    sh_ids = sorted(int(m.group(1)) for m in (L.SH_PATTERN.match(a.name) for a in attributes) if m)
+    if sh_ids != list(range(len(sh_ids))) or len(sh_ids) not in (0, 3, 8, 15):
+        raise SplatObjectError(f"'{name}': radiance:sh_* attributes must be numbered 0..2, 0..7 or 0..14, found {sh_ids}")
+    for k in sh_ids:
+        _check_type(attributes, f"radiance:sh_{k}", name)
+    base = _get(attributes, L.BASE, n)
+    alpha = base[:, 3]
+    scale = _get(attributes, L.SCALE, n)
+    rotation = _get(attributes, L.ROTATION, n)
+    if not np.isfinite(alpha).all() or ((alpha < 0) | (alpha > 1)).any():
+        raise SplatObjectError(f"'{name}': the alpha of {L.BASE} must lie in [0, 1] (it is sigmoid(opacity)); {int((~((alpha >= 0) & (alpha <= 1))).sum())} splats are outside or NaN")
+    if not np.isfinite(scale).all() or (scale <= 0).any():
+        raise SplatObjectError(f"'{name}': {L.SCALE} must be positive and finite (standard deviations); {int((~(scale > 0) | ~np.isfinite(scale)).any(axis=1).sum())} splats are not")
+    norms = np.linalg.norm(rotation.astype(np.float64), axis=1)
+    if not np.isfinite(norms).all() or (norms == 0).any():
+        raise SplatObjectError(f"'{name}': {L.ROTATION} has {int((~(norms > 0) | ~np.isfinite(norms)).sum())} zero or non-finite quaternions")
+    clipped = np.clip(alpha.astype(np.float64), _ALPHA_EPS, 1.0 - _ALPHA_EPS)
+    logits = np.log(clipped / (1.0 - clipped)).astype(np.float32)
+    rest = np.stack([_get(attributes, f"radiance:sh_{k}", n) for k in sh_ids], axis=1) if sh_ids else np.zeros((n, 0, 3), np.float32)
+    arrays = SplatArrays(
+        means=means,
+        scales=_fill(_raw_where_consistent(attributes, L.RAW_LOG_SCALE, n, scale, _exp32), np.log(scale.astype(np.float64)).astype(np.float32)),
+        quats=_fill(_raw_where_consistent(attributes, L.RAW_ROT, n, rotation, _normalised32), rotation),
+        opacities=_fill(_raw_where_consistent(attributes, L.RAW_OPACITY, n, alpha, _sigmoid32), logits),
+        sh_dc=np.ascontiguousarray(base[:, None, :3]),
+        sh_rest=rest,
+    )
+    return arrays, set(L.NATIVE) | {f"radiance:sh_{k}" for k in sh_ids}
+
+
+def _read_legacy(attributes, n, means, name):
+    """Raw 3DGS values from the add-on's earlier layout (f_dc, f_rest_*, opacity, log_scale, rot)."""
+    rest_ids = sorted(int(m.group(1)) for m in (L.LEGACY_REST.match(a.name) for a in attributes) if m)
     if rest_ids != list(range(len(rest_ids))) or len(rest_ids) not in (0, 9, 24, 45):
         raise SplatObjectError(f"'{name}': f_rest attributes must be f_rest_0..f_rest_{{8, 23 or 44}}, found {len(rest_ids)} ({rest_ids[:3]}...)")
     k1 = len(rest_ids) // 3
@@ -144,27 +254,30 @@ def _read_raw(attributes, n, means, name):
         sh_dc=_get(attributes, "f_dc", n)[:, None, :],
         sh_rest=np.ascontiguousarray(rest.reshape(3, k1, n).transpose(2, 1, 0)),
     )
-    return arrays, set(RAW_ATTRIBUTES) | {f"f_rest_{i}" for i in rest_ids}
+    used = set(L.LEGACY_RAW) | {f"f_rest_{i}" for i in rest_ids} | set(L.LEGACY_DISPLAY) | set(L.NATIVE)
+    return arrays, used | {a.name for a in attributes if L.SH_PATTERN.match(a.name)}
 
 
-def _read_native(attributes, n, means, name):
-    """Raw 3DGS values from the attributes Blender 5.3's PLY importer writes."""
-    sh_ids = sorted(int(m.group(1)) for m in (_NATIVE_SH.match(a.name) for a in attributes) if m)
-    if sh_ids != list(range(len(sh_ids))) or len(sh_ids) not in (0, 3, 8, 15):
-        raise SplatObjectError(f"'{name}': radiance:sh_* attributes must be numbered 0..2, 0..7 or 0..14, found {sh_ids}")
-    base = _get(attributes, "radiance:base", n)
-    alpha = np.clip(base[:, 3].astype(np.float64), 1e-7, 1 - 1e-7)
-    scale = np.maximum(_get(attributes, "scale", n).astype(np.float64), 1e-30)
-    rest = np.stack([_get(attributes, f"radiance:sh_{k}", n) for k in sh_ids], axis=1) if sh_ids else np.zeros((n, 0, 3), np.float32)
-    arrays = SplatArrays(
-        means=means,
-        scales=np.log(scale).astype(np.float32),
-        quats=_get(attributes, "rotation", n),
-        opacities=np.log(alpha / (1 - alpha)).astype(np.float32),
-        sh_dc=np.ascontiguousarray(base[:, None, :3]),
-        sh_rest=rest,
-    )
-    return arrays, _NATIVE | {f"radiance:sh_{k}" for k in sh_ids}
+def _read_extras(cloud, attributes, n, used, arrays) -> list[str]:
+    """Fill ``arrays.extra`` with the other PLY scalars (recorded order first); warnings."""
+    types = json.loads(cloud.get(L.TYPES_KEY, "{}")) if hasattr(cloud, "get") else {}
+    zeros = json.loads(cloud.get(L.ZERO_KEY, "[]")) if hasattr(cloud, "get") else []
+    skipped = []
+    order = [name for name in types if name in attributes or name in zeros] + [a.name for a in attributes if a.name not in types]
+    for name in order:
+        if name in used or L.reserved(name):
+            continue
+        if name not in attributes:  # a property that was zero for every splat
+            arrays.extra[name] = np.zeros(n, np.dtype(types[name]))
+            continue
+        attr = attributes[name]
+        if attr.domain != "POINT" or _TYPES.get(attr.data_type, (0,))[0] != 1:
+            skipped.append(f"{name} ({attr.data_type})")
+            continue
+        values = _get(attributes, name, n)
+        ply_type = np.dtype(types.get(name, values.dtype.str))
+        arrays.extra[name] = values.view(ply_type) if ply_type.itemsize == values.dtype.itemsize and ply_type.kind in "iu" else values.astype(ply_type)
+    return [f"attributes {', '.join(skipped)} are not PLY scalars and are not exported"] if skipped else []
 
 
 def object_matrix(obj, which: str = "world") -> np.ndarray:
@@ -187,10 +300,6 @@ def baked_splats(obj, matrix: np.ndarray | None = None) -> tuple[SplatArrays, li
 
 
 # --------------------------------------------------------------------------- writing
-def _ply_type_record(extra: dict) -> dict:
-    return {name: values.dtype.str for name, values in extra.items()}
-
-
 def _attribute_for(name: str, values: np.ndarray) -> tuple[str, np.ndarray, str | None]:
     """(data_type, values to store, warning) for an extra PLY property."""
     if values.dtype == np.float32:
@@ -204,14 +313,10 @@ def _attribute_for(name: str, values: np.ndarray) -> tuple[str, np.ndarray, str 
     raise SplatObjectError(f"property '{name}' has unsupported type {values.dtype}")
 
 
-def _reserved(name: str) -> bool:
-    return name in RAW_ATTRIBUTES or name == "position" or name in _DISPLAY or name in _NATIVE or bool(_F_REST.match(name) or _NATIVE_SH.match(name))
-
-
 def new_pointcloud(name: str, arrays: SplatArrays) -> tuple["bpy.types.PointCloud", list[str]]:
-    """A new point cloud data-block holding ``arrays`` (raw and display attributes), and warnings."""
+    """A new point cloud data-block holding ``arrays`` in the splat layout, and warnings."""
     arrays.validate()
-    clash = [k for k in arrays.extra if _reserved(k)]
+    clash = [k for k in arrays.extra if L.reserved(k) or k in L.LEGACY_RAW or L.LEGACY_REST.match(k)]
     if clash:
         raise SplatObjectError(f"extra properties {clash} clash with splat attribute names")
     n = arrays.count
@@ -227,124 +332,84 @@ def new_pointcloud(name: str, arrays: SplatArrays) -> tuple["bpy.types.PointClou
         if carrier.type != "POINTCLOUD":
             raise SplatObjectError(f"Blender did not convert '{name}' into a point cloud")
         cloud = carrier.data
+        _remove(cloud.attributes, [a.name for a in cloud.attributes if a.name.startswith(".")])  # the mesh's selection
     finally:
         scene.collection.objects.unlink(carrier)
         bpy.data.objects.remove(carrier)
         if mesh.users == 0:
             bpy.data.meshes.remove(mesh)
-    warnings = write_attributes(cloud, arrays)
+    try:
+        warnings = write_attributes(cloud, arrays)
+    except Exception:
+        bpy.data.pointclouds.remove(cloud)
+        raise
     return cloud, warnings
 
 
 def write_attributes(cloud, arrays: SplatArrays) -> list[str]:
-    """Fill ``cloud`` (n points) with the raw, extra and display attributes of ``arrays``."""
+    """Fill ``cloud`` (n points at ``arrays.means``) with the splat layout of the running Blender."""
+    layout = L.current()
     attributes = cloud.attributes
-    _set(attributes, "f_dc", "FLOAT_VECTOR", arrays.sh_dc[:, 0, :])
-    rest = np.asarray(arrays.sh_rest, np.float32).transpose(0, 2, 1)  # (N, 3, K-1): channel-major
-    k1 = rest.shape[2]
-    for c in range(3):
-        for k in range(k1):
-            _set(attributes, f"f_rest_{c * k1 + k}", "FLOAT", rest[:, c, k])
-    _set(attributes, "opacity", "FLOAT", arrays.opacities)
-    _set(attributes, "log_scale", "FLOAT_VECTOR", arrays.scales)
-    _set(attributes, "rot", "QUATERNION", arrays.quats)
-    warnings = []
+    opacity, log_scales, quats = (np.asarray(a, np.float32) for a in (arrays.opacities, arrays.scales, arrays.quats))
+    _set(attributes, L.BASE, layout.base_type, np.column_stack([arrays.sh_dc[:, 0, :], _sigmoid32(opacity)]))
+    _set(attributes, L.SCALE, "FLOAT_VECTOR", _exp32(log_scales))
+    _set(attributes, L.ROTATION, "QUATERNION", _normalised32(quats))
+    for k in range(arrays.sh_rest.shape[1]):
+        _set(attributes, f"radiance:sh_{k}", "FLOAT_VECTOR", arrays.sh_rest[:, k, :])
+    _remove(attributes, [a.name for a in attributes if (m := L.SH_PATTERN.match(a.name)) and int(m.group(1)) >= arrays.sh_rest.shape[1]])
+    _set(attributes, L.RAW_OPACITY, "FLOAT", opacity)
+    _set(attributes, L.RAW_LOG_SCALE, "FLOAT_VECTOR", log_scales)
+    _set(attributes, L.RAW_ROT, "QUATERNION", quats)
+    warnings, zeros = [], []
     for name, values in arrays.extra.items():
+        if arrays.count and not np.any(values):
+            zeros.append(name)
+            _remove(attributes, [name])
+            continue
         data_type, stored, warning = _attribute_for(name, values)
         _set(attributes, name, data_type, stored)
         if warning:
             warnings.append(warning)
-    cloud[TYPES_KEY] = json.dumps(_ply_type_record(arrays.extra))
-    update_display(cloud, arrays)
+    cloud[L.TYPES_KEY] = json.dumps({name: values.dtype.str for name, values in arrays.extra.items()})
+    cloud[L.ZERO_KEY] = json.dumps(zeros)
+    if layout.splat_type:
+        cloud.type = layout.splat_type
     return warnings
 
 
-def srgb_to_linear(c) -> np.ndarray:
-    """Inverse sRGB transfer function (IEC 61966-2-1) of values clipped to [0, 1]."""
-    c = np.clip(np.asarray(c, dtype=np.float64), 0.0, 1.0)
-    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
-
-
-def update_display(cloud, arrays: SplatArrays) -> None:
-    """Write the derived display attributes (and Blender 5.3's native splat layout)."""
-    scales = np.exp(arrays.scales.astype(np.float64))
-    opacity = 1.0 / (1.0 + np.exp(-arrays.opacities.astype(np.float64)))
-    # point radius: twice the geometric-mean standard deviation
-    _set(cloud.attributes, "radius", "FLOAT", 2.0 * np.cbrt(np.prod(scales, axis=1)))
-    rgb = np.clip(0.5 + C0 * arrays.sh_dc[:, 0, :].astype(np.float64), 0.0, 1.0)
-    _set(cloud.attributes, "splat_color", "FLOAT_COLOR", np.column_stack([srgb_to_linear(rgb), opacity]))
-    quats = arrays.quats.astype(np.float64)
-    quats /= np.maximum(np.linalg.norm(quats, axis=1, keepdims=True), 1e-30)
-    _set(cloud.attributes, "rotation", "QUATERNION", quats)
-    if bpy.app.version >= NATIVE_SPLAT_VERSION:
-        _write_native(cloud, arrays, scales, opacity)
-    _ensure_material(cloud)
-
-
-def _write_native(cloud, arrays, scales, opacity) -> None:
-    """Blender 5.3+: the attributes its own splat importer writes, so its renderer draws ours."""
-    types = {item.identifier for item in bpy.types.Attribute.bl_rna.properties["data_type"].enum_items}
-    float4 = "FLOAT4" if "FLOAT4" in types else "FLOAT_COLOR"
-    _set(cloud.attributes, "scale", "FLOAT_VECTOR", scales)
-    _set(cloud.attributes, "radiance:base", float4, np.column_stack([arrays.sh_dc[:, 0, :], opacity]))
-    for k in range(arrays.sh_rest.shape[1]):
-        _set(cloud.attributes, f"radiance:sh_{k}", "FLOAT_VECTOR", arrays.sh_rest[:, k, :])
-    type_prop = cloud.bl_rna.properties.get("type")
-    if type_prop is not None:
-        splat_types = [item.identifier for item in type_prop.enum_items if "SPLAT" in item.identifier]
-        if splat_types:
-            cloud.type = splat_types[0]
-
-
-def node_material(name: str, build):
-    """The material ``name`` (reused when it exists), else a new one whose
-    emptied node tree ``build(nodes, links)`` fills."""
-    mat = bpy.data.materials.get(name)
-    if mat is None:
-        mat = bpy.data.materials.new(name)
-        if bpy.app.version < (5, 0, 0):  # 5.0+ materials always use nodes
-            mat.use_nodes = True
-        mat.node_tree.nodes.clear()
-        build(mat.node_tree.nodes, mat.node_tree.links)
-    return mat
-
-
-def attribute_material(name: str, attribute_type: str = "GEOMETRY", transparent: bool = True):
-    """An emissive material coloured by ``splat_color`` (reused when it exists).
-
-    attribute_type: where the shader reads the attribute ('GEOMETRY' for the
-    points themselves, 'INSTANCER' for instances on them); transparent: mix
-    with a transparent shader by the attribute's alpha (the splat opacity).
-    """
-
-    def build(nodes, links):
-        attr = nodes.new("ShaderNodeAttribute")
-        attr.attribute_type = attribute_type
-        attr.attribute_name = "splat_color"
-        emission = nodes.new("ShaderNodeEmission")
-        out = nodes.new("ShaderNodeOutputMaterial")
-        links.new(attr.outputs["Color"], emission.inputs["Color"])
-        chain = [attr, emission]
-        shader = emission.outputs["Emission"]
-        if transparent:
-            clear = nodes.new("ShaderNodeBsdfTransparent")
-            mix = nodes.new("ShaderNodeMixShader")
-            links.new(attr.outputs["Alpha"], mix.inputs["Fac"])
-            links.new(clear.outputs["BSDF"], mix.inputs[1])
-            links.new(shader, mix.inputs[2])
-            chain += [clear, mix]
-            shader = mix.outputs["Shader"]
-        links.new(shader, out.inputs["Surface"])
-        for i, node in enumerate(chain + [out]):
-            node.location = (220 * i - 440, 0)
-
-    return node_material(name, build)
-
-
-def _ensure_material(cloud) -> None:
-    mat = attribute_material(MATERIAL_NAME)
-    if mat.name not in cloud.materials:
-        cloud.materials.append(mat)
+def upgrade(obj) -> bool:
+    """Bring a splat object saved by another Blender or an earlier add-on version to the running
+    Blender's layout (``splat_layout``); True if anything changed. Objects whose splats come from
+    modifiers only are left as they are."""
+    if obj is None or obj.type != "POINTCLOUD":
+        return False
+    cloud, layout = obj.data, L.current()
+    attributes = cloud.attributes
+    found = _layout_of(attributes)
+    changed = False
+    if found == "legacy":
+        ellipsoids = display.remove_legacy(obj)
+        if _has_modifiers(obj):
+            return ellipsoids
+        arrays, _ = read_splats(obj)
+        write_attributes(cloud, arrays)
+        legacy = set(L.LEGACY_RAW) | set(L.LEGACY_DISPLAY) | {a.name for a in attributes if L.LEGACY_REST.match(a.name)}
+        _remove(attributes, legacy)
+        for i in reversed(range(len(cloud.materials))):
+            if cloud.materials[i] is not None and cloud.materials[i].name == L.LEGACY_MATERIAL:
+                cloud.materials.pop(index=i)
+        display.ensure(obj, layout.own_display, ellipsoids=ellipsoids or None)
+        return True
+    if found != "native":
+        return False
+    base = attributes[L.BASE]
+    if base.data_type != layout.base_type and base.data_type in ("FLOAT4", "FLOAT_COLOR"):
+        _set(attributes, L.BASE, layout.base_type, _get(attributes, L.BASE, len(cloud.points)))
+        changed = True
+    if layout.splat_type and getattr(cloud, "type", layout.splat_type) != layout.splat_type:
+        cloud.type = layout.splat_type
+        changed = True
+    return display.ensure(obj, layout.own_display) or changed
 
 
 def create_splat_object(name: str, arrays: SplatArrays, collection=None, matrix=None):
@@ -360,6 +425,7 @@ def create_splat_object(name: str, arrays: SplatArrays, collection=None, matrix=
     (collection or bpy.context.collection).objects.link(obj)
     if matrix is not None:
         obj.matrix_world = Matrix(np.asarray(matrix).tolist())
+    display.ensure(obj, L.current().own_display)
     return obj, warnings
 
 
@@ -370,4 +436,11 @@ def replace_splats(obj, arrays: SplatArrays) -> list[str]:
     obj.data = cloud
     if old.users == 0:
         bpy.data.pointclouds.remove(old)
+    display.ensure(obj, L.current().own_display)
     return warnings
+
+
+def srgb_to_linear(c) -> np.ndarray:
+    """Inverse sRGB transfer function (IEC 61966-2-1) of values clipped to [0, 1]."""
+    c = np.clip(np.asarray(c, dtype=np.float64), 0.0, 1.0)
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)

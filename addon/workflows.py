@@ -25,13 +25,14 @@ from mlx3d.meshing import DEFAULT_TRIM, MeshingError, SurfaceMesh, reconstruct_s
 from mlx3d.splatting import GaussianModel, merge_splats
 
 from .camera import camera_from_blender
+from .display import node_material
 from .splat_object import (
     SplatObjectError,
     baked_splats,
     create_splat_object,
     is_identity,
+    has_splat_attributes,
     is_splat_object,
-    node_material,
     object_matrix,
     read_splats,
     replace_splats,
@@ -68,8 +69,15 @@ def axis_matrix(axis: str) -> np.ndarray:
 
 
 def splat_objects(objects) -> list:
-    """The splat objects among ``objects``, in the given order."""
-    return [obj for obj in objects if is_splat_object(obj)]
+    """The splat objects among ``objects``, in the given order. A point cloud with only some of
+    the splat attributes raises ``SplatObjectError`` naming what it lacks."""
+    found = []
+    for obj in objects:
+        if is_splat_object(obj):
+            found.append(obj)
+        elif has_splat_attributes(obj):
+            read_splats(obj)  # raises, naming the missing attributes
+    return found
 
 
 def import_splat_file(path, *, sh_degree=None, drop_nonfinite=False, axis="NONE", location=None, collection=None):
