@@ -36,8 +36,9 @@ _TYPES = {
 _INT_TYPES = {np.dtype(t) for t in (np.int8, np.uint8, np.int16, np.uint16, np.int32)}
 # the native attributes' accepted data types (radiance:base: FLOAT4, or FLOAT_COLOR where FLOAT4 is missing)
 _EXPECTED = {L.BASE: ("FLOAT4", "FLOAT_COLOR"), L.SCALE: ("FLOAT_VECTOR",), L.ROTATION: ("QUATERNION",)}
-# an alpha of 0 or 1 has no logit: it is clipped to [eps, 1 - eps], eps = float32's gap below 1 (logits ±16.6)
-_ALPHA_EPS = float(np.finfo(np.float32).epsneg)
+# an alpha of 0 or 1 has no logit: alphas are clipped to [smallest normal float32, largest float32 below 1]
+# (logits -87.3 to 16.6)
+_ALPHA_RANGE = (float(np.finfo(np.float32).tiny), 1.0 - float(np.finfo(np.float32).epsneg))
 
 
 class SplatObjectError(ValueError):
@@ -223,7 +224,7 @@ def _read_native(attributes, n, means, name):
     norms = np.linalg.norm(rotation.astype(np.float64), axis=1)
     if not np.isfinite(norms).all() or (norms == 0).any():
         raise SplatObjectError(f"'{name}': {L.ROTATION} has {int((~(norms > 0) | ~np.isfinite(norms)).sum())} zero or non-finite quaternions")
-    clipped = np.clip(alpha.astype(np.float64), _ALPHA_EPS, 1.0 - _ALPHA_EPS)
+    clipped = np.clip(alpha.astype(np.float64), *_ALPHA_RANGE)
     logits = np.log(clipped / (1.0 - clipped)).astype(np.float32)
     rest = np.stack([_get(attributes, f"radiance:sh_{k}", n) for k in sh_ids], axis=1) if sh_ids else np.zeros((n, 0, 3), np.float32)
     arrays = SplatArrays(

@@ -359,19 +359,6 @@ def linear_of(c):
     return ((c + 0.055) / 1.055) ** 2.4
 
 
-def test_ellipsoids_instance_one_sphere_per_splat(extension, clean_scene):
-    obj = import_source(extension)
-    display = extension.addon.display
-    display.set_ellipsoids(obj, True)
-    assert display.has_ellipsoids(obj)
-    depsgraph = bpy.context.evaluated_depsgraph_get()
-    instances = [i for i in depsgraph.object_instances if i.is_instance and i.parent and i.parent.original == obj]
-    assert len(instances) == 40
-    display.set_ellipsoids(obj, False)
-    assert not display.has_ellipsoids(obj)
-    assert [m.name for m in obj.modifiers] == ([] if NATIVE else ["MLX3D Splat Display"])
-
-
 # ------------------------------------------------------------------ Blender 5.3's own splats
 def _render(engine, seed, size=48):
     scene = bpy.context.scene

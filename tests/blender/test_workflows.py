@@ -79,9 +79,8 @@ def test_round_trip_is_bit_exact(extension, clean_scene, tmp_path, degree):
     obj = import_file(tmp_path / "in.ply")
     assert obj.type == "POINTCLOUD" and obj.name == "in" and len(obj.data.points) == 300
     names = set(obj.data.attributes.keys())
-    assert {"f_dc", "opacity", "log_scale", "rot", "red", "segment", "confidence", "nx"} <= names
-    assert obj.data.attributes["rot"].data_type == "QUATERNION"
-    assert len([n for n in names if n.startswith("f_rest_")]) == 3 * ((degree + 1) ** 2 - 1)
+    assert {"radiance:base", "scale", "rotation", "red", "segment", "confidence", "nx"} <= names
+    assert len([n for n in names if n.startswith("radiance:sh_")]) == (degree + 1) ** 2 - 1
     export_file(tmp_path / "out.ply")
     assert_same_bits(src, vertex(tmp_path / "out.ply"))
 
@@ -303,105 +302,26 @@ def test_sh_cap_and_cursor(extension, clean_scene, tmp_path):
     make_ply(tmp_path / "in.ply", extras=False)
     bpy.context.scene.cursor.location = (1.0, 2.0, 3.0)
     obj = import_file(tmp_path / "in.ply", sh_degree="1", at_cursor=True)
-    assert len([n for n in obj.data.attributes.keys() if n.startswith("f_rest_")]) == 9
+    assert len([n for n in obj.data.attributes.keys() if n.startswith("radiance:sh_")]) == 3
     assert tuple(obj.location) == pytest.approx((1.0, 2.0, 3.0))
 
 
-def test_display_attributes(extension, clean_scene, tmp_path):
-    make_ply(tmp_path / "in.ply", n=10, extras=False)
-    arrays = read_splat_ply(tmp_path / "in.ply")
-    obj = import_file(tmp_path / "in.ply")
-    radius = np.empty(10, np.float32)
-    obj.data.attributes["radius"].data.foreach_get("value", radius)
-    np.testing.assert_allclose(radius, 2 * np.exp(arrays.scales.astype(np.float64).mean(axis=1)), rtol=1e-5)
-    colour = np.empty(40, np.float32)
-    obj.data.attributes["splat_color"].data.foreach_get("color", colour)
-    alpha = 1 / (1 + np.exp(-arrays.opacities.astype(np.float64)))
-    np.testing.assert_allclose(colour.reshape(10, 4)[:, 3], alpha, rtol=1e-5)
-    assert obj.data.materials[0].name == "MLX3D Splat"
-
-
-def test_export_reads_blender_native_splat_layout(extension, clean_scene, tmp_path):
-    """Point clouds made by Blender 5.3's own importer: scale (linear), rotation, radiance:base, radiance:sh_k."""
+def test_export_without_the_raw_values_derives_them(extension, clean_scene, tmp_path):
+    """Splats made by Blender's own importer or by Geometry Nodes carry no hidden raw values:
+    logits, log scales and quaternions come from radiance:base, scale and rotation."""
     make_ply(tmp_path / "in.ply", n=20, degree=2, extras=False)
     arrays = read_splat_ply(tmp_path / "in.ply")
-    from mlx3d.splatting import merge_splats  # noqa: F401  (ensures the core is importable here)
-
     obj = import_file(tmp_path / "in.ply")
-    attrs = obj.data.attributes
-    for name in ["f_dc", "opacity", "log_scale", "rot", "rotation"] + [f"f_rest_{i}" for i in range(24)]:
-        attrs.remove(attrs[name])
-    alpha = (1 / (1 + np.exp(-arrays.opacities.astype(np.float64)))).astype(np.float32)
-    attrs.new("scale", "FLOAT_VECTOR", "POINT").data.foreach_set("vector", np.exp(arrays.scales).ravel())
-    attrs.new("rotation", "QUATERNION", "POINT").data.foreach_set("value", arrays.quats.ravel())
-    attrs.new("radiance:base", "FLOAT_COLOR", "POINT").data.foreach_set("color", np.column_stack([arrays.sh_dc[:, 0], alpha]).ravel())
-    for k in range(8):
-        attrs.new(f"radiance:sh_{k}", "FLOAT_VECTOR", "POINT").data.foreach_set("vector", arrays.sh_rest[:, k].ravel())
+    for name in (".mlx3d_opacity", ".mlx3d_log_scale", ".mlx3d_rot"):
+        obj.data.attributes.remove(obj.data.attributes[name])
     export_file(tmp_path / "out.ply")
     out = read_splat_ply(tmp_path / "out.ply")
     np.testing.assert_array_equal(out.sh_rest, arrays.sh_rest)
     np.testing.assert_array_equal(out.sh_dc, arrays.sh_dc)
-    np.testing.assert_allclose(out.scales, arrays.scales, atol=1e-5)
-    np.testing.assert_allclose(out.opacities, arrays.opacities, atol=1e-3)
-
-
-def test_blender_native_splat_layout_is_written_from_5_3(extension, clean_scene, tmp_path, monkeypatch):
-    """On 5.3+ (forced here: the check is one constant) import also writes Blender's own layout, exactly."""
-    splat_object = extension.addon.splat_object
-    make_ply(tmp_path / "in.ply", n=30, degree=2, extras=False)
-    arrays = read_splat_ply(tmp_path / "in.ply")
-    native = bpy.app.version >= (5, 3, 0)
-    assert ("radiance:base" in import_file(tmp_path / "in.ply").data.attributes) == native
-    monkeypatch.setattr(splat_object, "NATIVE_SPLAT_VERSION", (0, 0, 0))
-    attrs = import_file(tmp_path / "in.ply").data.attributes
-
-    def read(name, comps):
-        attr = attrs[name]
-        assert attr.domain == "POINT"
-        key = {"FLOAT_VECTOR": "vector", "FLOAT4": "vector", "FLOAT_COLOR": "color"}.get(attr.data_type, "value")
-        out = np.empty(30 * comps, np.float32)
-        attr.data.foreach_get(key, out)
-        return out.reshape(30, comps)
-
-    np.testing.assert_allclose(read("scale", 3), np.exp(arrays.scales.astype(np.float64)), rtol=1e-6)
-    alpha = 1 / (1 + np.exp(-arrays.opacities.astype(np.float64)))
-    np.testing.assert_allclose(read("radiance:base", 4), np.column_stack([arrays.sh_dc[:, 0], alpha]), rtol=1e-6, atol=1e-7)
-    for k in range(8):
-        np.testing.assert_array_equal(read(f"radiance:sh_{k}", 3), arrays.sh_rest[:, k])
-    assert "radiance:sh_8" not in attrs
+    np.testing.assert_allclose(out.scales, arrays.scales, atol=1e-6)
+    np.testing.assert_allclose(out.opacities, arrays.opacities, atol=1e-5)
     quats = arrays.quats.astype(np.float64)
-    np.testing.assert_allclose(read("rotation", 4), quats / np.linalg.norm(quats, axis=1, keepdims=True), atol=1e-6)
-    export_file(tmp_path / "out.ply")
-    np.testing.assert_array_equal(read_splat_ply(tmp_path / "out.ply").sh_rest, arrays.sh_rest)
-
-
-@pytest.mark.skipif(bpy.app.version < (5, 3, 0), reason="Blender's own 3DGS PLY import arrived in 5.3")
-def test_blender_5_3_own_import_matches_ours_and_exports_exactly(extension, clean_scene, tmp_path):
-    """Blender's importer (wm.ply_import) and ours give the same splat attributes; its objects export the file's values."""
-    make_ply(tmp_path / "in.ply", n=40, degree=3, extras=False)
-    arrays = read_splat_ply(tmp_path / "in.ply")
-    assert bpy.ops.wm.ply_import(filepath=str(tmp_path / "in.ply")) == {"FINISHED"}
-    theirs = bpy.context.active_object
-    assert theirs.data.type == "GAUSSIAN_SPLAT"
-    ours = import_file(tmp_path / "in.ply")
-    assert ours.data.type == "GAUSSIAN_SPLAT"
-    for name in ["position", "scale", "rotation", "radiance:base"] + [f"radiance:sh_{k}" for k in range(15)]:
-        a, b = theirs.data.attributes[name], ours.data.attributes[name]
-        assert (a.data_type, a.domain) == (b.data_type, b.domain), name
-        key = "value" if a.data_type == "QUATERNION" else "vector"
-        va, vb = np.empty(40 * 4, np.float32), np.empty(40 * 4, np.float32)
-        size = 40 * (3 if a.data_type == "FLOAT_VECTOR" else 4)
-        a.data.foreach_get(key, va[:size])
-        b.data.foreach_get(key, vb[:size])
-        np.testing.assert_allclose(vb[:size], va[:size], rtol=1e-6, atol=1e-7, err_msg=name)
-    select_only(theirs)
-    export_file(tmp_path / "theirs.ply", use_selection=True)
-    out = read_splat_ply(tmp_path / "theirs.ply")
-    np.testing.assert_array_equal(out.means, arrays.means)
-    np.testing.assert_array_equal(out.sh_dc, arrays.sh_dc)
-    np.testing.assert_array_equal(out.sh_rest, arrays.sh_rest)
-    np.testing.assert_allclose(out.scales, arrays.scales, atol=1e-5)
-    np.testing.assert_allclose(out.opacities, arrays.opacities, atol=1e-3)
+    np.testing.assert_allclose(out.quats, quats / np.linalg.norm(quats, axis=1, keepdims=True), atol=2e-7)
 
 
 # ------------------------------------------------------------------ headless
@@ -443,7 +363,7 @@ def test_ellipsoid_display_instances_oriented_scaled_spheres(extension, clean_sc
     export_file(tmp_path / "out.ply")  # display only: the file is unchanged
     assert_same_bits(vertex(tmp_path / "in.ply"), vertex(tmp_path / "out.ply"))
     assert bpy.ops.mlx3d.show_ellipsoids(show=False) == {"FINISHED"}
-    assert not obj.modifiers
+    assert [m.name for m in obj.modifiers] == ([] if bpy.app.version >= (5, 3, 0) else ["MLX3D Splat Display"])
 
 
 def test_info_box_values(extension, clean_scene, tmp_path):
