@@ -119,6 +119,9 @@ def main() -> None:
     title = (f"{os.path.basename(args.ply)} ({len(positions):,} splats), {args.size}x{args.size}, Blender {bpy.app.version_string}, {covered:.0%} of the frame covered; "
              + machine_line(f"; load {os.getloadavg()[0]:.1f}; {time.strftime('%Y-%m-%d')}"))
     table = f"{title}\n\n| " + " | ".join(header) + " |\n|---|---:|---:|---:|\n" + "".join("| " + " | ".join(r) + " |\n" for r in rows)
+    if args.png and args.markdown:
+        picture = os.path.relpath(args.png, os.path.dirname(os.path.abspath(args.markdown)))
+        table += f"\n![ours | EEVEE | Cycles, Standard view]({picture})\n\nLeft to right: ours, EEVEE, Cycles.\n"
     emit(table, args.markdown)
 
 
