@@ -268,6 +268,17 @@ def _open(path):
     return obj
 
 
+def test_saved_and_reopened_in_this_version_keeps_the_layout(extension, clean_scene, tmp_path):
+    obj = import_source(extension)
+    before = {a.name: a.data_type for a in obj.data.attributes}
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "here.blend"))
+    obj = _open(tmp_path / "here.blend")
+    assert {a.name: a.data_type for a in obj.data.attributes} == before
+    assert before["radiance:base"] == BASE_TYPE and "scale" in before and "f_dc" not in before
+    export(extension, tmp_path / "out.ply", [obj])
+    assert_same_bits(vertex(SOURCE), vertex(tmp_path / "out.ply"))
+
+
 def test_a_file_saved_by_blender_4_5_opens_in_this_layout(extension, tmp_path):
     obj = _open(DATA / "splats_4_5.blend")
     assert obj.data.attributes["radiance:base"].data_type == BASE_TYPE
