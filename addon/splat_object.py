@@ -75,11 +75,12 @@ def _remove(attributes, names) -> None:
 
 
 def _layout_of(attributes) -> str | None:
-    """'native', 'legacy' (this add-on's earlier raw layout) or None."""
-    if all(a in attributes for a in L.NATIVE):
-        return "native"
+    """'legacy' (this add-on's earlier raw layout, whose raw attributes are the truth even where it
+    also wrote Blender's as a display), 'native' or None."""
     if all(a in attributes for a in L.LEGACY_RAW):
         return "legacy"
+    if all(a in attributes for a in L.NATIVE):
+        return "native"
     return None
 
 

@@ -307,12 +307,16 @@ def test_a_file_saved_by_blender_5_3(extension, tmp_path):
 
 
 def test_the_earlier_add_on_layout_is_converted_when_opened(extension, clean_scene, tmp_path):
-    """Objects saved with f_dc, f_rest_*, opacity, log_scale, rot (and display attributes and material)."""
+    """Objects saved with f_dc, f_rest_*, opacity, log_scale, rot, and display attributes (on 5.3 Blender's
+    own ones), a material and the ellipsoid modifier."""
     source = read_splat_ply(SOURCE)
     obj = import_source(extension)
     attrs = obj.data.attributes
-    for name in [a.name for a in attrs if a.name not in ("position", "segment", "confidence")]:
+    for name in [a.name for a in attrs if a.name.startswith(".")]:  # it also wrote Blender's attributes, for display
         attrs.remove(attrs[name])
+    scale = read(obj, "scale")
+    scale[:] = 1.0  # display values that disagree with the raw ones: the raw ones are the truth
+    write(obj, "scale", scale)
     n = source.count
 
     def add(name, data_type, values):
