@@ -340,15 +340,21 @@ FD_CASES = [  # seed, n, channels, opacity, sigma, width, height, hard (the rast
 ]
 
 
-@pytest.mark.parametrize("seed,n,channels,opacity,sigma,width,height,hard", FD_CASES)
-def test_gradients_match_finite_differences(seed, n, channels, opacity, sigma, width, height, hard):
-    tile = 8
+def fd_case(seed, n, channels, opacity, sigma, width, height, hard, tile=8):
+    """One ``FD_CASES`` scene with random cotangents and its finite-difference gradients:
+    (scene, cot_accum, cot_alpha, want)."""
     scene = smooth_scene(seed, n, width, height, channels, tile, opacity, sigma, hard)
     rng = np.random.default_rng(seed + 1)
     cot_accum = rng.normal(size=(height, width, channels)).astype(np.float32)
     cot_alpha = rng.normal(size=(height, width)).astype(np.float32)
+    return scene, cot_accum, cot_alpha, fd_grads(scene, width, height, tile, cot_accum, cot_alpha)
+
+
+@pytest.mark.parametrize("seed,n,channels,opacity,sigma,width,height,hard", FD_CASES)
+def test_gradients_match_finite_differences(seed, n, channels, opacity, sigma, width, height, hard):
+    tile = 8
+    scene, cot_accum, cot_alpha, want = fd_case(seed, n, channels, opacity, sigma, width, height, hard, tile)
     got = grads_cpu(scene, width, height, tile, cot_accum, cot_alpha)
-    want = fd_grads(scene, width, height, tile, cot_accum, cot_alpha)
     for name, g, w in zip(("means2d", "conics", "features", "opacities"), got, want):
         assert g.shape == w.shape and g.dtype == np.float32
         assert np.abs(w).max() > 0

@@ -12,7 +12,7 @@ from mlx3d import native
 from mlx3d.render import raster_mlx
 from mlx3d.render.raster_cpu import set_num_threads
 from mlx3d.render.raster_mlx import rasterize_mlx
-from test_rasterize_cpu import FD_CASES, FWD_ATOL, assert_grads_close, bin_scene, fd_grads, oracle, random_scene, smooth_scene
+from test_rasterize_cpu import FD_CASES, FWD_ATOL, assert_grads_close, bin_scene, fd_case, oracle, random_scene
 
 
 def run(scene, width, height, tile=16, **kw):
@@ -43,11 +43,7 @@ def test_forward_matches_oracle(seed, n, channels, tile, width, height):
 @pytest.mark.parametrize("seed,n,channels,opacity,sigma,width,height,hard", FD_CASES)
 def test_gradients_match_finite_differences(seed, n, channels, opacity, sigma, width, height, hard):
     tile = 8
-    scene = smooth_scene(seed, n, width, height, channels, tile, opacity, sigma, hard)
-    rng = np.random.default_rng(seed + 1)
-    cot_accum = rng.normal(size=(height, width, channels)).astype(np.float32)
-    cot_alpha = rng.normal(size=(height, width)).astype(np.float32)
-    want = fd_grads(scene, width, height, tile, cot_accum, cot_alpha)
+    scene, cot_accum, cot_alpha, want = fd_case(seed, n, channels, opacity, sigma, width, height, hard, tile)
     for budget in (raster_mlx.BATCH_ELEMENTS, 200):  # one batch, and many (entries carried across batches)
         got = grads(scene, width, height, tile, cot_accum, cot_alpha, batch_elements=budget)
         for name, g, w in zip(("means2d", "conics", "features", "opacities"), got, want):
