@@ -100,8 +100,7 @@ def _evaluated_cloud(obj):
     try:
         depsgraph = bpy.context.evaluated_depsgraph_get()
         depsgraph.update()
-        evaluated = obj.evaluated_get(depsgraph)
-        return evaluated.data if evaluated.type == "POINTCLOUD" else None
+        return obj.evaluated_get(depsgraph).data
     finally:
         for m in ours:
             m.show_viewport = True
@@ -137,7 +136,7 @@ def read_splats(obj) -> tuple[SplatArrays, list[str]]:
     if obj is None or obj.type != "POINTCLOUD":
         raise SplatObjectError(f"'{getattr(obj, 'name', obj)}' is not a point cloud, so it holds no splats")
     cloud = _evaluated_cloud(obj)
-    attributes = cloud.attributes if cloud is not None else {}
+    attributes = cloud.attributes
     layout = _layout_of(attributes)
     if layout is None:
         present = [a for a in L.NATIVE if a in attributes]
@@ -262,8 +261,8 @@ def _read_legacy(attributes, n, means, name):
 
 def _read_extras(cloud, attributes, n, used, arrays) -> list[str]:
     """Fill ``arrays.extra`` with the other PLY scalars (recorded order first); warnings."""
-    types = json.loads(cloud.get(L.TYPES_KEY, "{}")) if hasattr(cloud, "get") else {}
-    zeros = json.loads(cloud.get(L.ZERO_KEY, "[]")) if hasattr(cloud, "get") else []
+    types = json.loads(cloud.get(L.TYPES_KEY, "{}"))
+    zeros = json.loads(cloud.get(L.ZERO_KEY, "[]"))
     skipped = []
     order = [name for name in types if name in attributes or name in zeros] + [a.name for a in attributes if a.name not in types]
     for name in order:

@@ -12,12 +12,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from plyfile import PlyData
 
 from mlx3d.io import SplatArrays, read_splat_ply
 from mlx3d.splatting import C0
 
 bpy = pytest.importorskip("bpy")
+
+from test_workflows import assert_same_bits, vertex  # noqa: E402  (tests/blender is on sys.path)
 
 DATA = Path(__file__).resolve().parent / "data"
 SOURCE = DATA / "splats.ply"
@@ -41,16 +42,6 @@ def read(obj_or_cloud, name):
 def write(obj, name, values):
     attr = obj.data.attributes[name]
     attr.data.foreach_set(KEYS.get(attr.data_type, "value"), np.ascontiguousarray(values, np.float32).ravel())
-
-
-def vertex(path):
-    return PlyData.read(str(path))["vertex"].data
-
-
-def assert_same_bits(a, b):
-    assert a.dtype.names == b.dtype.names
-    for name in a.dtype.names:
-        assert np.array_equal(a[name].view(f"u{a[name].itemsize}"), b[name].view(f"u{b[name].itemsize}")), name
 
 
 def export(extension, path, objects):
