@@ -56,7 +56,7 @@ BPY_LTS := 4.5.15
 BPY_LATEST := 5.3.0
 PYTEST_ARGS ?=
 
-.PHONY: demo test $(TEST_MATRIX) test-venv bench bench-scenes report install extension
+.PHONY: demo test $(TEST_MATRIX) test-venv peer-tools bench bench-scenes report install extension
 
 # `make demo` runs the Blender extension as a user would: it builds the extension
 # zip for this machine and the venv's Python (build/demo-extension/), installs and
@@ -165,8 +165,20 @@ test-macos-compile:
 
 # The tests of one venv (VENV, PYTHON, BPY as above; TESTS: pytest paths).
 TESTS ?=
-test-venv: $(STAMP)
+test-venv: $(STAMP) peer-tools
 	$(PY) -m pytest -q $(PYTEST_ARGS) $(TESTS)
+
+# The peer tool the file-format tests compare with (tests/peer.py):
+# @playcanvas/splat-transform from the npm registry, in .tools/ (git-ignored).
+# Without npm (or offline) those tests skip with the reason; the rest still run.
+SPLAT_TRANSFORM_VERSION := 3.7.0
+SPLAT_TRANSFORM := .tools/node_modules/.bin/splat-transform
+peer-tools:
+	@if [ -x $(SPLAT_TRANSFORM) ] && grep -q '"version": "$(SPLAT_TRANSFORM_VERSION)"' .tools/node_modules/@playcanvas/splat-transform/package.json 2>/dev/null; then :; \
+	elif command -v npm >/dev/null 2>&1; then \
+		mkdir -p .tools && npm install --prefix .tools --no-audit --no-fund --loglevel=error @playcanvas/splat-transform@$(SPLAT_TRANSFORM_VERSION) \
+		|| echo "make: could not install @playcanvas/splat-transform@$(SPLAT_TRANSFORM_VERSION); the peer tests will skip" >&2; \
+	else echo "make: npm not found; the file-format peer tests (splat-transform) will skip" >&2; fi
 
 require_python = test -n "$(2)" || { echo "make: Python $(1) was not found (looked for pyenv's $(1).* and python$(1) on PATH): install it (e.g. 'pyenv install $(1)') or pass PYTHON$(subst .,,$(1))=/path/to/python$(1)" >&2; exit 1; }
 

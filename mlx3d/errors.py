@@ -9,7 +9,12 @@ class Mlx3dError(Exception):
     """Base class of every error raised on purpose by mlx3d."""
 
 
-class PlyFormatError(Mlx3dError, ValueError):
+class SplatFormatError(Mlx3dError, ValueError):
+    """A splat file (any format) is not readable as splats (the message names
+    the file and says why); also raised for an unknown or unwritable format."""
+
+
+class PlyFormatError(SplatFormatError):
     """A PLY file is not a readable 3DGS splat file (the message says why)."""
 
 

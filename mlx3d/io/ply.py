@@ -43,7 +43,7 @@ import numpy.lib.recfunctions as _rfn
 from ..errors import PlyFormatError
 from .atomic import atomic_write
 
-__all__ = ["NONFINITE_MODES", "NORMAL_NAMES", "SplatArrays", "read_splat_ply", "write_splat_ply"]
+__all__ = ["NONFINITE_MODES", "NORMAL_NAMES", "SplatArrays", "read_splat_ply", "sniff_ply", "write_splat_ply"]
 
 NONFINITE_MODES = ("error", "drop", "keep")
 
@@ -658,6 +658,11 @@ def _check_nonfinite(arrays: dict, layout: _Layout):
             hits.append((position[names[j]], names[j], a[row, j]))
     _, name, value = min(hits)
     return bad, count, f"first: row {row}, property {name!r} = {value}"
+
+
+def sniff_ply(head: bytes, path: str) -> bool:
+    """Whether ``head`` starts a PLY file (``ply`` and a line end)."""
+    return head.startswith((b"ply\n", b"ply\r\n"))
 
 
 def read_splat_ply(
