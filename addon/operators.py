@@ -12,6 +12,8 @@ import bpy
 from bpy.props import BoolProperty, CollectionProperty, EnumProperty, FloatProperty, FloatVectorProperty, IntProperty, IntVectorProperty, StringProperty
 from bpy_extras.io_utils import ExportHelper, ImportHelper
 
+from mlx3d.io import FORMATS
+
 from . import benchmark, capture, display, scene_render, train, workflows
 from .splat_object import is_splat_object
 
@@ -49,15 +51,23 @@ def _report_all(op, messages):
         op.report({"INFO"} if i == 0 else {"WARNING"}, message)
 
 
+#: Every readable splat file, for the file browser and drag and drop.
+READ_GLOB = ";".join(f"*{ext}" if ext.startswith(".") else ext for f in FORMATS for ext in f.extensions)
+#: The writable formats: (identifier, label, description) and their extensions.
+WRITE_ITEMS = [(f.name.upper().replace("-", "_"), f"{f.description} ({f.extensions[0]})", f"Write {f.description} ({', '.join(f.extensions)})")
+               for f in FORMATS if f.writer]
+WRITE_EXTENSIONS = {f.name.upper().replace("-", "_"): f.extensions[0] for f in FORMATS if f.writer}
+
+
 class IMPORT_SCENE_OT_gaussian_splat_ply(bpy.types.Operator, ImportHelper):
-    """Import 3D Gaussian Splatting PLY files as splat objects"""
+    """Import Gaussian splat files (PLY, compressed PLY, SPZ, .splat, .ksplat, SOG, glTF) as splat objects"""
 
     bl_idname = "import_scene.gaussian_splat_ply"
-    bl_label = "Import Gaussian Splat (.ply)"
+    bl_label = "Import Gaussian Splats"
     bl_options = {"REGISTER", "UNDO", "PRESET"}
 
     filename_ext = ".ply"
-    filter_glob: StringProperty(default="*.ply", options={"HIDDEN"})
+    filter_glob: StringProperty(default=READ_GLOB, options={"HIDDEN"})
     files: CollectionProperty(type=bpy.types.OperatorFileListElement, options={"HIDDEN", "SKIP_SAVE"})
     directory: StringProperty(subtype="DIR_PATH", options={"HIDDEN", "SKIP_SAVE"})
     sh_degree: EnumProperty(name="SH degree", items=SH_ITEMS, default="FILE", description="Cap the spherical-harmonics degree")
@@ -96,17 +106,37 @@ class IMPORT_SCENE_OT_gaussian_splat_ply(bpy.types.Operator, ImportHelper):
 
 
 class EXPORT_SCENE_OT_gaussian_splat_ply(bpy.types.Operator, ExportHelper):
-    """Export splat objects, with their transforms baked in, to one 3DGS PLY file"""
+    """Export splat objects, with their transforms baked in, to one splat file (PLY, compressed PLY, SPZ, SOG, .splat or glTF)"""
 
     bl_idname = "export_scene.gaussian_splat_ply"
-    bl_label = "Export Gaussian Splat (.ply)"
+    bl_label = "Export Gaussian Splats"
     bl_options = {"REGISTER", "PRESET"}
 
     filename_ext = ".ply"
-    filter_glob: StringProperty(default="*.ply", options={"HIDDEN"})
+    filter_glob: StringProperty(default=READ_GLOB, options={"HIDDEN"})
+    file_format: EnumProperty(name="Format", items=WRITE_ITEMS, default="PLY", description="File format; PLY keeps every value exactly, the others quantise")
     use_selection: BoolProperty(name="Selected only", default=True, description="Export only selected splat objects (else all in the scene)")
     axis: EnumProperty(name="Axes", items=workflows.AXIS_ITEMS, default="NONE", description="Axis convention to write")
     sh_degree: EnumProperty(name="SH degree", items=SH_ITEMS, default="FILE", description="SH degree of the file (default: highest of the objects)")
+
+    def check(self, context):
+        # The file name follows the chosen format's extension (as Blender's glTF exporter does).
+        ext = WRITE_EXTENSIONS[self.file_format]
+        path = self.filepath
+        for other in WRITE_EXTENSIONS.values():
+            if path.lower().endswith(other) and other != ext:
+                path = path[: -len(other)]
+                break
+        self.filename_ext = ext
+        if not path.lower().endswith(ext):
+            path += ext
+        changed = path != self.filepath
+        self.filepath = path
+        return changed
+
+    def invoke(self, context, event):
+        self.filename_ext = WRITE_EXTENSIONS[self.file_format]
+        return super().invoke(context, event)
 
     def execute(self, context):
         objects = context.selected_objects if self.use_selection else context.scene.objects
@@ -813,12 +843,12 @@ class MLX3D_OT_benchmark(_ModalWork, bpy.types.Operator):
 
 
 class MLX3D_FH_gaussian_splat_ply(bpy.types.FileHandler):
-    """Drag and drop .ply files onto the 3D viewport to import them as splats"""
+    """Drag and drop splat files onto the 3D viewport to import them"""
 
     bl_idname = "MLX3D_FH_gaussian_splat_ply"
-    bl_label = "Gaussian Splat (.ply)"
+    bl_label = "Gaussian Splats"
     bl_import_operator = IMPORT_SCENE_OT_gaussian_splat_ply.bl_idname
-    bl_file_extensions = ".ply"
+    bl_file_extensions = ";".join(ext for f in FORMATS for ext in f.extensions if ext.startswith("."))
 
     @classmethod
     def poll_drop(cls, context):
@@ -826,11 +856,11 @@ class MLX3D_FH_gaussian_splat_ply(bpy.types.FileHandler):
 
 
 def menu_import(self, context):
-    self.layout.operator(IMPORT_SCENE_OT_gaussian_splat_ply.bl_idname, text="Gaussian Splat (.ply)")
+    self.layout.operator(IMPORT_SCENE_OT_gaussian_splat_ply.bl_idname, text="Gaussian Splats (.ply .spz .splat .sog .glb ...)")
 
 
 def menu_export(self, context):
-    self.layout.operator(EXPORT_SCENE_OT_gaussian_splat_ply.bl_idname, text="Gaussian Splat (.ply)")
+    self.layout.operator(EXPORT_SCENE_OT_gaussian_splat_ply.bl_idname, text="Gaussian Splats (.ply .spz .splat .sog .glb ...)")
 
 
 CLASSES = (

@@ -22,7 +22,7 @@ exactly the wheels inside. Per platform, for each Python (3.11 and 3.13):
 - ``linux-arm64``: ``mlx`` and ``mlx-cpu`` (``manylinux_2_35_aarch64``) and our
   pure-Python wheel: pure MLX on the CPU.
 
-All of them also bundle ``plyfile`` and ``pillow``; numpy is not bundled:
+All of them also bundle ``plyfile``, ``pillow`` and ``zstandard``; numpy is not bundled:
 Blender ships it. Every zip is built on any machine from the registry's
 wheels, except that the compiled linux-x64 wheels are built on a linux-x64
 machine (elsewhere they must already be in ``wheels/``).
@@ -156,6 +156,12 @@ BINARY_WHEEL_TAGS = {
         "macos-arm64": "macosx_11_0_arm64",
         "windows-x64": "win_amd64",
         "linux-arm64": "manylinux_2_27_aarch64.manylinux_2_28_aarch64",
+    },
+    "zstandard": {
+        "linux-x64": "manylinux2014_x86_64.manylinux_2_17_x86_64",
+        "macos-arm64": "macosx_11_0_arm64",
+        "windows-x64": "win_amd64",
+        "linux-arm64": "manylinux2014_aarch64.manylinux_2_17_aarch64",
     },
 }
 

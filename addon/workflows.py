@@ -20,7 +20,9 @@ import bpy
 import numpy as np
 
 from mlx3d.floaters import radius_outliers, statistical_outliers
-from mlx3d.io import read_splat_ply, write_splat_ply
+from mlx3d.io import FORMATS, detect_format, format_for_path
+from mlx3d.io import read_splats as read_splat_file
+from mlx3d.io import write_splats as write_splat_file
 from mlx3d.meshing import DEFAULT_TRIM, MeshingError, SurfaceMesh, reconstruct_surface
 from mlx3d.splatting import GaussianModel, merge_splats
 
@@ -80,33 +82,51 @@ def splat_objects(objects) -> list:
     return found
 
 
+def file_stem(path) -> str:
+    """An object name for a splat file: its name without the format's extension
+    (``scan.compressed.ply`` -> ``scan``; an unbundled SOG ``meta.json`` -> its folder's name)."""
+    path = os.path.abspath(os.fspath(path))
+    base = os.path.basename(path)
+    for fmt in FORMATS:
+        for ext in fmt.extensions:
+            if base.lower().endswith(ext):
+                return base[:-len(ext)] or os.path.basename(os.path.dirname(path))
+    return os.path.splitext(base)[0]
+
+
 def import_splat_file(path, *, sh_degree=None, drop_nonfinite=False, axis="NONE", location=None, collection=None):
-    """Import one 3DGS PLY file as a splat object named after it.
+    """Import one splat file of any format ``mlx3d.io.read_splats`` reads
+    (PLY, compressed PLY, SPZ, .splat, .ksplat, SOG, glTF; recognised by
+    content) as a splat object named after it.
 
     sh_degree: cap (truncate/pad) or None for the file's degree; drop_nonfinite:
     drop rows with NaN/Inf (counted in the messages) instead of refusing the
     file; axis: an ``AXIS_PRESETS`` key applied as the object's transform;
     location: world position of the object origin (e.g. the 3D cursor).
-    Returns (object, messages). A bad file raises ``PlyFormatError`` and
+    Returns (object, messages). A bad file raises ``SplatFormatError`` and
     leaves the scene untouched.
     """
     matrix = axis_matrix(axis).copy()
     notes: list = []
+    fmt = detect_format(path)
     with _warnings_into(notes):
-        arrays = read_splat_ply(path, sh_degree=sh_degree, nonfinite="drop" if drop_nonfinite else "error")
+        arrays = read_splat_file(path, format=fmt.name, sh_degree=sh_degree, nonfinite="drop" if drop_nonfinite else "error")
     if location is not None:
         matrix[:3, 3] = np.asarray(location, dtype=np.float64)
-    name = os.path.splitext(os.path.basename(os.fspath(path)))[0]
-    obj, messages = create_splat_object(name, arrays, collection=collection, matrix=None if is_identity(matrix) else matrix)
-    return obj, [f"imported {arrays.count:,} splats (SH degree {arrays.sh_degree}) from {os.path.basename(os.fspath(path))}"] + notes + messages
+    obj, messages = create_splat_object(file_stem(path), arrays, collection=collection, matrix=None if is_identity(matrix) else matrix)
+    return obj, [f"imported {arrays.count:,} splats (SH degree {arrays.sh_degree}) from {os.path.basename(os.fspath(path))} "
+                 f"({fmt.description})"] + notes + messages
 
 
 def export_splat_file(path, objects, *, axis="NONE", sh_degree=None):
-    """Write the splat objects, each with its world transform baked in, into one PLY file.
+    """Write the splat objects, each with its world transform baked in, into one file.
 
+    The extension of ``path`` picks the format (``.ply``, ``.compressed.ply``,
+    ``.spz``, ``.sog``, ``.splat``, ``.glb``; see ``mlx3d.io.write_splats``).
     axis: the inverse of an ``AXIS_PRESETS`` key is applied (so a file imported
     with a preset exports back to its own axes). Returns (count, messages).
     """
+    fmt = format_for_path(path, writable=True)
     objects = splat_objects(objects)
     if not objects:
         raise SplatObjectError("no splat objects to export (select point clouds imported as Gaussian splats)")
@@ -119,9 +139,10 @@ def export_splat_file(path, objects, *, axis="NONE", sh_degree=None):
         messages += warnings
     with _warnings_into(messages):
         merged = parts[0] if len(parts) == 1 and sh_degree is None else merge_splats(parts, sh_degree)
-    write_splat_ply(path, merged)
+        write_splat_file(path, merged, format=fmt.name)
     names = ", ".join(obj.name for obj in objects)
-    return merged.count, [f"exported {merged.count:,} splats from {names} to {os.path.basename(os.fspath(path))}"] + messages
+    return merged.count, [f"exported {merged.count:,} splats from {names} to {os.path.basename(os.fspath(path))} "
+                          f"({fmt.description})"] + messages
 
 
 def merge_objects(objects, name="Merged splats", collection=None):

@@ -1,4 +1,7 @@
-"""The ``mlx3d`` command line: inspect, compact, clean, transform, merge, train, evaluate and benchmark.
+"""The ``mlx3d`` command line: inspect, convert, compact, clean, transform, merge, train, evaluate and benchmark.
+
+Every command reads any splat file format :func:`mlx3d.io.read_splats` reads
+(recognised by content) and writes the format its output's extension names.
 
 Exit codes: 0 success, 1 bad input or failed work (the message says what),
 2 bad command-line usage, 130 cancelled with Ctrl+C. Outputs are written
@@ -16,7 +19,14 @@ import numpy as np
 
 from .errors import Mlx3dError
 from .io.ply import NORMAL_NAMES
+from .io.formats import FORMATS, format_for_path
 from .progress import ProgressLine, step
+
+#: The writable extensions, for help texts.
+FORMAT_HELP = " ".join(ext for f in FORMATS if f.writer for ext in f.extensions if ext.startswith("."))
+
+#: Commands whose splat output is checked (extension, directory) before any work.
+_OUTPUTS = {"convert": "output", "compact": "output", "clean": "output", "transform": "output", "merge": "output", "train": "out"}
 
 
 def _sigmoid(x: np.ndarray) -> np.ndarray:
@@ -30,20 +40,22 @@ def _stats(values: np.ndarray) -> dict:
     return {"min": float(finite.min()), "median": float(np.median(finite)), "mean": float(finite.mean()), "max": float(finite.max())}
 
 
-def ply_summary(path: str) -> dict:
-    """Facts about a splat file: count, SH degree, bounds, opacity/scale statistics, extras."""
+def splat_summary(path: str) -> dict:
+    """Facts about a splat file: format, count, SH degree, bounds, opacity/scale statistics, extras."""
     import warnings
 
-    from .io.ply import read_splat_ply
+    from .io import detect_format, read_splats
 
+    fmt = detect_format(path)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        arrays = read_splat_ply(path, nonfinite="keep")
+        arrays = read_splats(path, format=fmt.name, nonfinite="keep")
     finite_means = arrays.means[np.isfinite(arrays.means).all(axis=1)]
     lo = finite_means.min(axis=0).tolist() if finite_means.size else None
     hi = finite_means.max(axis=0).tolist() if finite_means.size else None
     return {
         "file": os.fspath(path),
+        "format": fmt.name,
         "bytes": os.path.getsize(path),
         "splats": arrays.count,
         "sh_degree": arrays.sh_degree,
@@ -67,6 +79,7 @@ def _print_summary(s: dict) -> None:
 
     rows = [
         ("file", s["file"]),
+        ("format", s["format"]),
         ("size", f"{s['bytes'] / 1e6:.2f} MB"),
         ("splats", f"{s['splats']:,}"),
         ("SH degree", str(s["sh_degree"])),
@@ -87,14 +100,14 @@ def _load(path: str, nonfinite: str):
     from .splatting import GaussianModel
 
     with step(f"reading {path}"):
-        model = GaussianModel.load_ply(path, sh_degree=None, nonfinite=nonfinite)
+        model = GaussianModel.load(path, nonfinite=nonfinite)
     print(f"{path}: {len(model):,} splats, SH degree {model.sh_degree}")
     return model
 
 
 def _save(model, path: str) -> None:
     with step(f"writing {path}"):
-        model.save_ply(path)
+        model.save(path)
     print(f"{path}: {len(model):,} splats, SH degree {model.sh_degree}, {os.path.getsize(path) / 1e6:.2f} MB")
 
 
@@ -141,11 +154,23 @@ def cmd_info(args) -> None:
             _print_plan(args, path)
         return
     for path in args.files:
-        summary = ply_summary(path)
+        summary = splat_summary(path)
         if args.json:
             print(json.dumps(summary, indent=2))
         else:
             _print_summary(summary)
+
+
+def cmd_convert(args) -> None:
+    from .io import read_splats, write_splats
+
+    with step(f"reading {args.input}"):
+        splats = read_splats(args.input, sh_degree=args.sh_degree, nonfinite=args.nonfinite)
+    with step(f"writing {args.output}"):
+        fmt = write_splats(args.output, splats)
+    size_in, size_out = os.path.getsize(args.input), os.path.getsize(args.output)
+    print(f"convert: {splats.count:,} splats, SH degree {splats.sh_degree}, {size_in / 1e6:.2f} MB -> "
+          f"{args.output} ({fmt.description}, {size_out / 1e6:.2f} MB)")
 
 
 def cmd_compact(args) -> None:
@@ -254,7 +279,7 @@ def cmd_train(args) -> None:
     try:
         trainer.fit(dataset, steps=remaining, progress=TrainProgress())
     except KeyboardInterrupt:
-        trainer.model.save_ply(args.out)
+        trainer.model.save(args.out)
         trainer.save_checkpoint(os.path.join(out_dir, "checkpoint.npz"))
         print(f"cancelled at step {trainer.step_count}: saved {args.out} and a checkpoint to resume from", file=sys.stderr)
         raise
@@ -298,7 +323,7 @@ def cmd_eval(args) -> None:
     from .splatting import GaussianModel
     from .training.evaluate import evaluate
 
-    model = GaussianModel.load_ply(args.model, sh_degree=None)
+    model = GaussianModel.load(args.model)
     dataset = load_dataset(args.data, factor=args.factor)
     report = evaluate(model, dataset, args.split, _background_arg(args.background), out_dir=args.out, progress=ProgressLine("evaluating"))
 
@@ -366,8 +391,8 @@ def build_parser() -> argparse.ArgumentParser:
     def reading(p):
         p.add_argument("--nonfinite", choices=("error", "drop", "keep"), default="error", help="rows with NaN/Inf: fail (default), drop them, or keep them")
 
-    p = add("info", cmd_info, "Summarise splat PLY files: count, SH degree, bounds, opacity and scale statistics, extra properties.")
-    p.add_argument("files", nargs="+", metavar="FILE.ply")
+    p = add("info", cmd_info, "Summarise splat files: format, count, SH degree, bounds, opacity and scale statistics, extra properties.")
+    p.add_argument("files", nargs="+", metavar="FILE")
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
     p.add_argument("--plan", action="store_true", help="print the stages a render and a training step run for this file (effects on demand)")
     p.add_argument("--data", metavar="DATA_DIR", help="--plan: use this dataset's first training camera")
@@ -378,17 +403,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--antialias", action="store_true", help="--plan: with antialias compensation")
     p.add_argument("--bilateral-grid", action="store_true", help="--plan: with the bilateral grid")
 
+    p = add("convert", cmd_convert, f"Convert a splat file to another format: the output's extension picks it ({FORMAT_HELP}); the input's is recognised by its content.")
+    p.add_argument("input", metavar="IN")
+    p.add_argument("output", metavar="OUT")
+    p.add_argument("--sh-degree", type=int, default=None, choices=(0, 1, 2, 3), metavar="D", help="write SH degree D (cut, or padded with zeros)")
+    reading(p)
+
     p = add("compact", cmd_compact, "Keep the most important splats and/or truncate SH (importance = opacity * max scale^2).")
-    p.add_argument("input", metavar="IN.ply")
-    p.add_argument("output", metavar="OUT.ply")
+    p.add_argument("input", metavar="IN")
+    p.add_argument("output", metavar="OUT")
     p.add_argument("--max-gaussians", type=int, default=None, metavar="N", help="keep at most N splats")
     p.add_argument("--min-opacity", type=float, default=0.0, metavar="X", help="drop splats with opacity below X (0..1)")
     p.add_argument("--sh-degree", type=int, default=None, choices=(0, 1, 2, 3), metavar="D", help="truncate SH to degree D")
     reading(p)
 
     p = add("clean", cmd_clean, "Remove floaters: statistical outliers (default) or radius outliers.")
-    p.add_argument("input", metavar="IN.ply")
-    p.add_argument("output", metavar="OUT.ply")
+    p.add_argument("input", metavar="IN")
+    p.add_argument("output", metavar="OUT")
     p.add_argument("--stat-k", type=int, default=25, help="neighbours for the statistical rule (default 25)")
     p.add_argument("--stat-std", type=float, default=10.5, help="standard deviations above the mean distance (default 10.5)")
     p.add_argument("--radius", type=float, default=None, metavar="R", help="use the radius rule with this radius (scene units)")
@@ -396,21 +427,21 @@ def build_parser() -> argparse.ArgumentParser:
     reading(p)
 
     p = add("transform", cmd_transform, "Scale, rotate (Euler XYZ, degrees) and translate a splat file; SH colour rotates too.")
-    p.add_argument("input", metavar="IN.ply")
-    p.add_argument("output", metavar="OUT.ply")
+    p.add_argument("input", metavar="IN")
+    p.add_argument("output", metavar="OUT")
     p.add_argument("--scale", type=float, nargs="+", default=[1.0], metavar="S", help="uniform scale S, or three factors SX SY SZ")
     p.add_argument("--rotate-deg", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("RX", "RY", "RZ"))
     p.add_argument("--translate", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("X", "Y", "Z"))
     reading(p)
 
     p = add("merge", cmd_merge, "Merge splat files into one (SH padded to the highest degree unless --sh-degree).")
-    p.add_argument("output", metavar="OUT.ply")
-    p.add_argument("inputs", nargs="+", metavar="IN.ply")
+    p.add_argument("output", metavar="OUT")
+    p.add_argument("inputs", nargs="+", metavar="IN")
     p.add_argument("--sh-degree", type=int, default=None, choices=(0, 1, 2, 3), metavar="D")
     reading(p)
 
     p = add("mesh", cmd_mesh, "Extract a triangle mesh (PLY with vertex colours) by Poisson reconstruction from the Gaussians as oriented discs.")
-    p.add_argument("model", metavar="MODEL.ply")
+    p.add_argument("model", metavar="MODEL")
     p.add_argument("--out", required=True, metavar="MESH.ply")
     p.add_argument("--resolution", type=int, default=128, help="grid cells per side (default 128; memory grows with its cube)")
     p.add_argument("--padding", type=float, default=0.1, help="grid margin, as a fraction of the bounding box's largest side")
@@ -420,9 +451,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data", metavar="DATA_DIR", help="turn each normal towards the nearest camera of this dataset (default: each Gaussian's own, its thinnest axis)")
     reading(p)
 
-    p = add("train", cmd_train, "Train Gaussians on a dataset (COLMAP, NeRF-synthetic or nerfstudio folder) and write a PLY.")
+    p = add("train", cmd_train, "Train Gaussians on a dataset (COLMAP, NeRF-synthetic or nerfstudio folder) and write a splat file.")
     p.add_argument("data", metavar="DATA_DIR")
-    p.add_argument("--out", required=True, metavar="OUT.ply")
+    p.add_argument("--out", required=True, metavar="OUT")
     p.add_argument("--method", choices=METHODS, default="vanilla", help="vanilla, mcmc or 2dgs (surfels, for mesh extraction)")
     p.add_argument("--steps", type=int, default=30000)
     p.add_argument("--max-gaussians", type=int, default=None, metavar="N", help="vanilla: stop growth at N; mcmc: grow to N (default: one per pixel of a training image, at least twice the initial count)")
@@ -443,8 +474,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "model cannot go transparent), a fixed colour, or same: --background; auto (default): random when "
                         "the run seeds a backdrop (mcmc, --background-points), else same")
 
-    p = add("eval", cmd_eval, "PSNR and SSIM of a splat PLY on a dataset's held-out views, plain and colour-corrected (CC: after the best affine colour map per view); the worst view; side-by-side renders.")
-    p.add_argument("model", metavar="MODEL.ply")
+    p = add("eval", cmd_eval, "PSNR and SSIM of a splat file on a dataset's held-out views, plain and colour-corrected (CC: after the best affine colour map per view); the worst view; side-by-side renders.")
+    p.add_argument("model", metavar="MODEL")
     p.add_argument("--data", required=True, metavar="DATA_DIR")
     p.add_argument("--split", default="test")
     p.add_argument("--out", metavar="DIR", help="write renders/*.png (ground truth | render) and metrics.json here")
@@ -471,6 +502,8 @@ def main(argv=None) -> int:
         if (args.radius is None) != (args.min_neighbours is None):
             parser.error("clean: --radius and --min-neighbours go together")
     try:
+        if args.command in _OUTPUTS:
+            format_for_path(getattr(args, _OUTPUTS[args.command]), writable=True)
         args.func(args)
     except KeyboardInterrupt:
         print("mlx3d: cancelled", file=sys.stderr)

@@ -66,7 +66,7 @@ def _with_view_dependence(model, seed: int, strength: float = 0.05):
 
 def run_demo(out_dir: str = "demo_out") -> dict:
     """Run the demo, writing PLY files into ``out_dir``; returns a dict of results."""
-    from .cli import _print_summary, ply_summary
+    from .cli import _print_summary, splat_summary
     from .floaters import statistical_outliers
     from .splatting import GaussianModel, merge
     from .transforms import compose_affine
@@ -101,7 +101,7 @@ def run_demo(out_dir: str = "demo_out") -> dict:
     sizes = {name: os.path.getsize(path(name)) for name in ("merged.ply", "cleaned.ply", "compact.ply")}
     print(f"compact: {len(cleaned):,} -> {len(compact):,} splats, SH 3 -> 1, {sizes['cleaned.ply'] / 1e6:.1f} MB -> {sizes['compact.ply'] / 1e6:.1f} MB")
     print()
-    _print_summary(ply_summary(path("compact.ply")))
+    _print_summary(splat_summary(path("compact.ply")))
     elapsed = time.perf_counter() - t0
     print(f"\ndemo finished in {elapsed:.1f} s; files in {out_dir}/")
     return {"removed": result.removed, "planted_found": found, "planted": int(planted.sum()), "compact": len(compact), "seconds": elapsed}

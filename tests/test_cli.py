@@ -146,3 +146,35 @@ def test_mesh_writes_a_coloured_mesh_and_refuses_transparent_models(tmp_path, ca
     m.save_ply(tmp_path / "clear.ply")
     assert main(["mesh", str(tmp_path / "clear.ply"), "--out", str(tmp_path / "clear_mesh.ply")]) == 1
     assert "no Gaussian has opacity" in capsys.readouterr().err and not (tmp_path / "clear_mesh.ply").exists()
+
+
+WRITABLE = [".ply", ".compressed.ply", ".spz", ".sog", ".splat", ".glb"]
+
+
+@pytest.mark.parametrize("ext", WRITABLE)
+def test_convert_writes_the_extensions_format_and_every_command_reads_it(tmp_path, capsys, ext):
+    from mlx3d.io import detect_format, read_splats
+
+    m = make_file(tmp_path / "a.ply", degree=2)
+    out = tmp_path / f"b{ext}"
+    assert main(["convert", str(tmp_path / "a.ply"), str(out), "--sh-degree", "1"]) == 0
+    fmt = detect_format(out)
+    assert fmt.extensions[0] == ext
+    back = read_splats(out)
+    assert back.count == len(m) and back.sh_degree == (0 if ext == ".splat" else 1)
+    capsys.readouterr()
+    # info, compact and transform take it as input and write any format.
+    assert main(["info", "--json", str(out)]) == 0
+    assert json.loads(capsys.readouterr().out)["format"] == fmt.name
+    assert main(["compact", str(out), str(tmp_path / "c.spz"), "--max-gaussians", "50"]) == 0
+    assert read_splats(tmp_path / "c.spz").count == 50
+
+
+def test_convert_refuses_unknown_or_read_only_outputs_before_reading(tmp_path, capsys):
+    make_file(tmp_path / "a.ply", n=20)
+    for bad in ("b.xyz", "b.ksplat"):
+        assert main(["convert", str(tmp_path / "a.ply"), str(tmp_path / bad)]) == 1
+        err = capsys.readouterr().err
+        assert bad in err and ("unknown splat file extension" in err or "can be read but not written" in err)
+        assert "reading" not in err  # refused before any work
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.ply"]

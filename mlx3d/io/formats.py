@@ -54,7 +54,8 @@ class SplatFormat:
     ``writer`` / ``sniffer`` (names of functions there; ``writer`` is ``None``
     for a read-only format).  ``exact`` formats keep every float32 value and
     the extra properties; the others quantise and drop extras (with a
-    warning naming them).
+    warning naming them).  ``max_sh_degree`` is the highest SH degree the
+    format stores (higher ones are cut with a warning).
     """
 
     name: str
@@ -65,6 +66,7 @@ class SplatFormat:
     writer: str | None
     sniffer: str | None
     exact: bool
+    max_sh_degree: int = 3
 
     def _function(self, attr: str):
         return getattr(importlib.import_module(f"mlx3d.io.{self.module}"), attr)
@@ -99,7 +101,7 @@ FORMATS: tuple[SplatFormat, ...] = (
     SplatFormat("ksplat", "GaussianSplats3D .ksplat", (".ksplat",),
                 "ksplat", "read_ksplat", None, "sniff_ksplat", False),
     SplatFormat("splat", "antimatter15 .splat", (".splat",),
-                "splat", "read_splat", "write_splat", None, False),
+                "splat", "read_splat", "write_splat", None, False, max_sh_degree=0),
 )
 
 _BY_NAME = {f.name: f for f in FORMATS}
@@ -299,6 +301,11 @@ def write_splats(
     if fmt.writer is None:
         raise SplatFormatError(f"{path}: {fmt.description} files can be read but not written")
     splats = with_sh_degree(splats, sh_degree)
+    if splats.sh_degree > fmt.max_sh_degree:
+        warnings.warn(
+            f"{path}: {fmt.description} stores SH up to degree {fmt.max_sh_degree}; "
+            f"degree {splats.sh_degree} is cut to {fmt.max_sh_degree}", UserWarning, stacklevel=2)
+        splats = with_sh_degree(splats, fmt.max_sh_degree)
     if fmt.name == "ply":
         write_splat_ply(path, splats, fsync=fsync)
         return fmt

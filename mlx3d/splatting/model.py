@@ -34,6 +34,7 @@ from typing import Iterable, Sequence
 import mlx.core as mx
 import numpy as np
 
+from ..io.formats import read_splats, write_splats
 from ..io.ply import SplatArrays, read_splat_ply, write_splat_ply
 from ..meshing import DEFAULT_TRIM
 from .ops import merge_splats, resize_sh_rest, transform_splats
@@ -243,6 +244,18 @@ class GaussianModel:
     def save_ply(self, path) -> None:
         """Write a standard binary 3DGS PLY (atomically; extras kept)."""
         write_splat_ply(path, self.to_arrays(copy=False))
+
+    @classmethod
+    def load(cls, path, nonfinite: str = "error") -> "GaussianModel":
+        """Read a splat file of any format :func:`mlx3d.io.read_splats` reads
+        (recognised by content), SH degree as stored, all of it active."""
+        return cls.from_arrays(read_splats(path, nonfinite=nonfinite))
+
+    def save(self, path, sh_degree: int | None = None) -> None:
+        """Write the format the extension of ``path`` names (``.ply``, ``.spz``,
+        ``.compressed.ply``, ``.sog``, ``.splat``, ``.glb``; see
+        :func:`mlx3d.io.write_splats`), atomically."""
+        write_splats(path, self.to_arrays(copy=False), sh_degree=sh_degree)
 
     # -------------------------------------------------------- construction
     @classmethod
