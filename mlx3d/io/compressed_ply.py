@@ -81,7 +81,7 @@ _COLOR_BOUNDS = ("min_r", "min_g", "min_b", "max_r", "max_g", "max_b")
 _PACKED = ("packed_position", "packed_rotation", "packed_scale", "packed_color")
 _SH_DEGREE_OF_COUNT = {9: 1, 24: 2, 45: 3}
 _SCALE_LIMIT = 20.0
-_ROT_NORM = np.sqrt(2.0)  # smallest-three components lie in [-1/sqrt(2), 1/sqrt(2)]
+_ROT_NORM = 1.0 / (np.sqrt(2.0) * 0.5)  # smallest-three components lie in [-1/sqrt(2), 1/sqrt(2)]
 # _OTHERS[i]: the components stored in packed_rotation when component i is the largest.
 _OTHERS = np.array([[j for j in range(4) if j != i] for i in range(4)])
 
@@ -148,6 +148,10 @@ def _sh_values(b: np.ndarray) -> np.ndarray:
     """float64 SH coefficients of quantised bytes (the ends exact at +-4)."""
     nrm = np.where(b == 0, 0.0, np.where(b == 255, 1.0, (b.astype(np.float64) + 0.5) / 256.0))
     return (nrm - 0.5) * 8.0
+
+
+#: float32 SH coefficient of each byte.
+_SH_OF_BYTE = _sh_values(np.arange(256)).astype(np.float32)
 
 
 def _elements(path: str, header) -> tuple:
@@ -248,16 +252,17 @@ def read_compressed_ply(path: str | os.PathLike) -> SplatArrays:
         rest = np.zeros((n, 0, 3), np.float32)
     else:
         k1 = len(sh.props) // 3
-        table = tables["sh"]
-        values = np.stack([table[f"f_rest_{i}"] for i in range(3 * k1)], axis=1)
-        rest = _sh_values(values).reshape(n, 3, k1).transpose(0, 2, 1).astype(np.float32)
+        column = {p.name: j for j, p in enumerate(sh.props)}
+        # sh_rest[:, k, c] = f_rest_{c*k1 + k} (channel-major in the file).
+        cols = [column[f"f_rest_{c * k1 + k}"] for k in range(k1) for c in range(3)]
+        rest = _SH_OF_BYTE[tables["sh"].view(np.uint8).reshape(n, 3 * k1)[:, cols]].reshape(n, k1, 3)
     return SplatArrays(
         means=means.astype(np.float32),
         scales=scales.astype(np.float32),
         quats=_unpack_rotation(packed["packed_rotation"]).astype(np.float32),
         opacities=logit(_unorm(color, 8)).astype(np.float32),
         sh_dc=((rgb - 0.5) / SH_C0).astype(np.float32).reshape(n, 1, 3),
-        sh_rest=np.ascontiguousarray(rest),
+        sh_rest=rest,
         comments=list(header.comments),
     )
 
@@ -353,6 +358,23 @@ def _chunk_min_max(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.minimum.reduceat(values, first, axis=0), np.maximum.reduceat(values, first, axis=0)
 
 
+def _sh_bytes(rest: np.ndarray, order: np.ndarray) -> np.ndarray:
+    """``(N, 3(K-1))`` uint8 ``sh`` rows of ``(N, K-1, 3)`` coefficients taken in ``order``.
+
+    ``trunc(256 * (v / 8 + 0.5))`` clamped to 0..255, computed as the equal
+    ``32 v + 128`` in float64, in blocks of splats to bound the temporaries.
+    """
+    n, k1 = len(order), rest.shape[1]
+    out = np.empty((n, 3 * k1), np.uint8)
+    for lo in range(0, n, 1 << 16):
+        # f_rest_{c*k1 + k} = sh_rest[:, k, c]: channel-major columns.
+        v = rest[order[lo:lo + (1 << 16)]].transpose(0, 2, 1).reshape(-1, 3 * k1).astype(np.float64)
+        v *= 32.0
+        v += 128.0
+        out[lo:lo + len(v)] = np.clip(v, 0.0, 255.0, out=v)  # the cast truncates
+    return out
+
+
 def _encode(splats: SplatArrays) -> bytes:
     """The whole file's bytes (splats in Morton order)."""
     n = splats.count
@@ -384,9 +406,7 @@ def _encode(splats: SplatArrays) -> bytes:
     lines += [f"element vertex {n}"] + [f"property uint {nm}" for nm in _PACKED]
     parts = [chunks.tobytes(), vertex.tobytes()]
     if k1:
-        # f_rest_{c*k1 + k} = sh_rest[:, k, c]: channel-major columns.
-        rest = np.asarray(splats.sh_rest, np.float64)[order].transpose(0, 2, 1).reshape(n, 3 * k1)
-        parts.append(np.clip(np.trunc((rest / 8.0 + 0.5) * 256.0), 0, 255).astype(np.uint8).tobytes())
+        parts.append(_sh_bytes(np.asarray(splats.sh_rest), order).tobytes())
         lines += [f"element sh {n}"] + [f"property uchar f_rest_{i}" for i in range(3 * k1)]
     lines.append("end_header\n")
     return "\n".join(lines).encode("ascii") + b"".join(parts)
