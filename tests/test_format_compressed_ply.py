@@ -35,9 +35,9 @@ ROTATION = 0.005
 ALPHA = 0.5 / 255 + 1e-6
 
 
-def _ply(elements, fmt: str = "binary_little_endian") -> bytes:
-    """A PLY file: ``elements`` is ``[(name, count, [(type, property)], data bytes)]``."""
-    lines = ["ply", f"format {fmt} 1.0"]
+def _ply(elements) -> bytes:
+    """A little-endian PLY file: ``elements`` is ``[(name, count, [(type, property)], data bytes)]``."""
+    lines = ["ply", "format binary_little_endian 1.0"]
     for name, count, props, _ in elements:
         lines.append(f"element {name} {count}")
         lines += [f"property {t} {p}" for t, p in props]
