@@ -207,6 +207,8 @@ _STANDARD = ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest")
 def _nonfinite_rows(splats: SplatArrays) -> np.ndarray:
     n = splats.count
     bad = np.zeros(n, bool)
+    if not n:
+        return bad
     for key in _STANDARD:
         a = np.asarray(getattr(splats, key)).reshape(n, -1)
         if a.shape[1]:
