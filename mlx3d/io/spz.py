@@ -23,7 +23,8 @@ blocks, in this order::
 
 Versions 1-3: one gzip stream holding a 16-byte header ``magic "NGSP",
 u32 version, u32 N, u8 sh_degree, u8 fractional_bits, u8 flags, u8 0``, the
-blocks back to back, then (flag 0x2) extension records.  Version 4: a plain
+blocks back to back, then (flag 0x2) extension records (a stream stored
+without gzip is read too, as splat-transform does).  Version 4: a plain
 32-byte header (the same fields, then ``u8 stream count, u32 toc_offset,
 12 zero bytes``), extension records from byte 32 to ``toc_offset`` (flag
 0x2), a table of ``u64 compressed, u64 uncompressed`` size per stream, then
@@ -47,8 +48,8 @@ signed permutation between the frames; rotations so that the covariance
 becomes ``M S M^T`` (sign flips conjugate the quaternion as Niantic does; the
 Z-up frames add the 90 degree turn about x); SH by the exact transform of
 each band under ``M`` (sign flips per coefficient, rotations mixing within a
-band).  Frame 0 ("unspecified") and unknown values leave the data as stored
-(the latter with a warning).  Known difference: Blender 5.3's own SPZ
+band).  Frame 0 ("unspecified", which Niantic's library reads as RUB) and
+unknown values leave the data as stored (the latter with a warning).  Known difference: Blender 5.3's own SPZ
 importer assumes RUB (file ``(x, y, z)`` becomes Blender ``(x, -z, y)``),
 so a file from these tools opens upside down there but the right way round
 here, in splat-transform and in Niantic's converter.
@@ -63,8 +64,9 @@ does for PLY input.
 Writing follows Niantic's library (the one splat-transform runs) in its
 float32 arithmetic and round-half-away-from-zero rounding: ``fractional_bits``
 12, SH buckets of 5 bits (degree 1) and 4 bits (degrees 2-3), ZSTD level 12
-(version 4), deflate level 6 with memory level 9 (versions 2-3); the files
-are byte for byte those splat-transform writes from the same PLY.
+(version 4), deflate level 6 with memory level 9 (versions 2-3); on the
+test scenes the files are byte for byte those splat-transform 3.7.0 writes
+from the same PLY.
 Quantisation bounds of a file written here, for a value inside the format's
 range (float32 rounding adds up to 1e-6 where a value is computed in float32):
 
