@@ -18,8 +18,10 @@ Conventions every codec follows (written once here):
   :func:`~mlx3d.io.atomic.atomic_write`, so a failed write leaves no partial
   file and an existing file untouched.  Everything that can fail (encoding,
   compression) happens before the first byte is written.
-- A sniffer ``(head: bytes, size: int) -> bool`` recognises a file by its
-  first bytes (:data:`SNIFF_BYTES` of them) and its size.
+- A sniffer ``(head: bytes, path: str) -> bool`` recognises a file by its
+  first bytes (:data:`SNIFF_BYTES` of them), opening ``path`` only where the
+  head is not enough (a zip's member list, a header's consistency with the
+  file's size).
 """
 
 from __future__ import annotations
