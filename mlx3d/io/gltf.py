@@ -288,8 +288,8 @@ def _accessor(doc: _Document, index, what: str, kind: str | None, quantized_posi
     """Accessor ``index`` as ``(values (count, width), componentType, normalized)``.
 
     ``kind`` (a key of ``_KINDS``) checks the type and component type and
-    returns float64 with normalised integers decoded; ``None`` (an extra)
-    returns a SCALAR in its stored dtype.
+    returns float32 as stored, integers as float64 (normalised ones decoded);
+    ``None`` (an extra) returns a SCALAR in its stored dtype.
     """
     acc = doc.item("accessors", index, what)
     where = f"accessors[{index}] ({what})"
@@ -342,6 +342,8 @@ def _accessor(doc: _Document, index, what: str, kind: str | None, quantized_posi
         values[idx.astype(np.int64)] = sub
     if kind is None:
         return values[:, 0], ctype, normalized
+    if ctype == _FLOAT:
+        return values, ctype, normalized
     out = values.astype(np.float64)
     if normalized:
         out = np.maximum(out / float(np.iinfo(dtype).max), -1.0)
@@ -439,9 +441,13 @@ def _primitive(doc: _Document, prim: dict, where: str, quantized_position: bool)
     out["alpha"] = get(required["OPACITY"], "OPACITY")[0][:, 0]
     out["sh_dc"] = get(required["DC"], "SH")[0]
     degree = _sh_degree(doc, attributes, where)
-    rest = [get(f"{_PREFIX}SH_DEGREE_{band}_COEF_{c}", "SH")[0]
-            for band in range(1, degree + 1) for c in range(2 * band + 1)]
-    out["sh_rest"] = np.stack(rest, axis=1) if rest else np.zeros((n, 0, 3))
+    names = [f"{_PREFIX}SH_DEGREE_{band}_COEF_{c}" for band in range(1, degree + 1) for c in range(2 * band + 1)]
+    out["sh_rest"] = np.zeros((n, len(names), 3), np.float32)
+    for k, name in enumerate(names):
+        coef = get(name, "SH")[0]
+        if len(coef) != n:
+            raise doc.error(f"{where}: POSITION has {n} elements but {name} has {len(coef)}")
+        out["sh_rest"][:, k] = coef
     extra = {}
     for name in attributes:
         if name.startswith("_"):
@@ -459,7 +465,7 @@ def _primitive(doc: _Document, prim: dict, where: str, quantized_position: bool)
                 re.escape(_PREFIX) + r"SH_DEGREE_[1-3]_COEF_\d", name):
             warnings.warn(f"{doc.path}: {where} has the unknown attribute {name}; ignored", UserWarning, stacklevel=4)
     out["extra"] = extra
-    for key in ("quats", "scales", "alpha", "sh_dc", "sh_rest"):
+    for key in ("quats", "scales", "alpha", "sh_dc"):
         if len(out[key]) != n:
             raise doc.error(f"{where}: POSITION has {n} elements but the {key} accessor has {len(out[key])}")
     for name, values in extra.items():
@@ -512,7 +518,7 @@ def _to_ply_frame(doc: _Document, p: dict, world: np.ndarray, where: str) -> Non
             UserWarning, stacklevel=4)
         log_scales = p["scales"]
     else:
-        log_scales = np.log(np.maximum(p["scales"], _TINY))
+        log_scales = np.log(np.maximum(p["scales"].astype(np.float64), _TINY))
     k1 = p["sh_rest"].shape[1]
     if np.array_equal(world, np.eye(4)):
         p["means"] = p["means"] * np.diag(_P)
@@ -585,22 +591,20 @@ def read_gltf(path: str | os.PathLike) -> SplatArrays:
         warnings.warn(f"{path}: extra attributes not in every splat primitive are not read: {', '.join(dropped)}",
                       UserWarning, stacklevel=2)
 
-    def cat(key):
-        return np.concatenate([p[key] for p in parts])
+    def cat(values: list) -> np.ndarray:
+        return (values[0] if len(values) == 1 else np.concatenate(values)).astype(np.float32, copy=False)
 
-    rest = np.concatenate([np.pad(p["sh_rest"], ((0, 0), (0, k1 - p["sh_rest"].shape[1]), (0, 0))) for p in parts])
-    alpha = cat("alpha")
-    with np.errstate(divide="ignore", invalid="ignore"):
-        a = np.clip(alpha, _TINY, _BELOW_ONE)
-        opacities = np.log(a / (1.0 - a))
-    n = len(alpha)
+    rest = [p["sh_rest"] if p["sh_rest"].shape[1] == k1 else
+            np.pad(p["sh_rest"], ((0, 0), (0, k1 - p["sh_rest"].shape[1]), (0, 0))) for p in parts]
+    a = np.clip(cat([p["alpha"] for p in parts]).astype(np.float64), _TINY, _BELOW_ONE)
+    n = len(a)
     return SplatArrays(
-        means=cat("means").astype(np.float32),
-        scales=cat("scales").astype(np.float32),
-        quats=cat("quats").astype(np.float32),
-        opacities=opacities.astype(np.float32),
-        sh_dc=cat("sh_dc").astype(np.float32).reshape(n, 1, 3),
-        sh_rest=rest.astype(np.float32),
+        means=cat([p["means"] for p in parts]),
+        scales=cat([p["scales"] for p in parts]),
+        quats=cat([p["quats"] for p in parts]),
+        opacities=np.log(a / (1.0 - a)).astype(np.float32),
+        sh_dc=cat([p["sh_dc"] for p in parts]).reshape(n, 1, 3),
+        sh_rest=cat(rest),
         extra={name: np.concatenate([p["extra"][name] for p in parts]) for name in names},
     )
 
