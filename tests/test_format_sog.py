@@ -238,8 +238,7 @@ def test_spec_details(tmp_path):
     got = read_splats(_write_dir(tmp_path / "null", meta, images))
     np.testing.assert_allclose(got.scales, np.float32(book[1] + (book[1] - book[255]) / 255), rtol=1e-6)
     # No shN: SH degree 0; bands 0: the same.
-    for name, value in (("none", None), ("zero", {"bands": 0, "count": 0, "codebook": book,
-                                                  "files": ["shN_centroids.webp", "shN_labels.webp"]})):
+    for name, value in (("none", None), ("zero", {"bands": 0})):
         meta2 = dict(meta, scales=dict(meta["scales"], codebook=book))
         if value is None:
             del meta2["shN"]
@@ -287,6 +286,23 @@ def test_round_trip_within_bounds(tmp_path, case):
         np.testing.assert_array_equal(getattr(again, key), getattr(got, key), err_msg=key)
     assert_close_splats(again, got, means=np.inf, rotation=EXACT["rotation"], what="resaved")
     assert (np.abs(again.means.astype(np.float64) - got.means) <= 2 * _means_bound(src)).all()
+
+
+def test_rotation_bound_over_many_quaternions(tmp_path):
+    rng = np.random.default_rng(5)
+    n = 20000
+    quats = rng.normal(size=(n, 4)) * rng.uniform(0.1, 10, (n, 1))
+    quats[: n // 4] = 0.5 + rng.normal(scale=0.02, size=(n // 4, 4))  # near ties between components
+    quats[n // 4: n // 2] *= rng.integers(0, 2, (n // 4, 4))  # zeros: axis-aligned and degenerate
+    src = SplatArrays(
+        means=rng.normal(size=(n, 3)).astype(np.float32), scales=np.zeros((n, 3), np.float32),
+        quats=quats.astype(np.float32), opacities=np.zeros(n, np.float32),
+        sh_dc=np.zeros((n, 1, 3), np.float32), sh_rest=np.zeros((n, 0, 3), np.float32))
+    write_splats(tmp_path / "q.sog", src)
+    got = read_splats(tmp_path / "q.sog")
+    zero = ~quats.any(axis=1)
+    src.quats[zero] = [1, 0, 0, 0]  # a zero quaternion is stored as the identity
+    assert_close_splats(got, src, means=np.inf, **EXACT, what="rotations")
 
 
 def test_unbundled_layout_and_sh_degrees(tmp_path):
@@ -344,12 +360,17 @@ def test_two_level_palette_close_to_flat(monkeypatch):
 # The peer
 # --------------------------------------------------------------------------
 
-def _match(got: SplatArrays, src: SplatArrays) -> SplatArrays:
-    """``src`` reordered as ``got`` (the peer writes splats in Morton order), by nearest position."""
+def _match(got: SplatArrays, src: SplatArrays) -> np.ndarray:
+    """The order of ``src`` that lines it up with ``got`` (the peer writes
+    splats in Morton order), by nearest position."""
     d = ((got.means[:, None, :].astype(np.float64) - src.means[None]) ** 2).sum(axis=-1)
     order = d.argmin(axis=1)
     assert len(set(order.tolist())) == src.count, "positions do not match one to one"
-    return SplatArrays(**{k: getattr(src, k)[order] for k in FIELDS})
+    return order
+
+
+def _take(s: SplatArrays, order) -> SplatArrays:
+    return SplatArrays(**{k: getattr(s, k)[order] for k in FIELDS})
 
 
 def _rms(got: SplatArrays, want: SplatArrays) -> dict:
@@ -362,13 +383,18 @@ def test_peer_file_and_peer_quality(tmp_path):
     # peer's own quantisation (it truncates where we round: a whole step).
     src = real_splats()
     peer = read_splats(PEER_SOG)
-    want = _match(peer, src)
-    assert_close_splats(peer, want, means=np.inf, rotation=0.03, alpha=1 / 255 + 1e-7,
-                        scales=0.02, sh_dc=0.015, sh_rest=0.06, what="peer file")
+    order = _match(peer, src)
+    want = _take(src, order)
+    peer_bounds = dict(rotation=0.03, alpha=1 / 255 + 1e-7, scales=0.02, sh_dc=0.015, sh_rest=0.06)
+    assert_close_splats(peer, want, means=np.inf, **peer_bounds, what="peer file")
     assert (np.abs(peer.means.astype(np.float64) - want.means) <= 2 * _means_bound(want)).all()
-    # PLY -> SOG -> PLY through us is no worse than through the peer (RMS per field).
+    # PLY -> SOG -> PLY through us matches the same through the peer within
+    # both bounds, and is no worse (RMS per field; measured: scales and f_dc
+    # 12% above the peer's, SH rest 6% and positions 50% below).
     write_splats(tmp_path / "ours.sog", src)
     ours = read_splats(tmp_path / "ours.sog")
+    both = {k: v + REAL[k] for k, v in peer_bounds.items()}
+    assert_close_splats(peer, _take(ours, order), means=np.inf, **both, what="ours vs peer")
     theirs, mine = _rms(peer, want), _rms(ours, src)
     for key in theirs:
         assert mine[key] <= 1.2 * theirs[key], (key, mine[key], theirs[key])
