@@ -168,17 +168,23 @@ TESTS ?=
 test-venv: $(STAMP) peer-tools
 	$(PY) -m pytest -q $(PYTEST_ARGS) $(TESTS)
 
-# The peer tool the file-format tests compare with (tests/peer.py):
-# @playcanvas/splat-transform from the npm registry, in .tools/ (git-ignored).
-# Without npm (or offline) those tests skip with the reason; the rest still run.
+# The peer tools the file-format tests compare with (tests/peer.py):
+# @playcanvas/splat-transform and the Khronos glTF validator from the npm
+# registry, in .tools/ (git-ignored). Without npm (or offline) those tests skip
+# with the reason; the rest still run.
 SPLAT_TRANSFORM_VERSION := 3.7.0
 SPLAT_TRANSFORM := .tools/node_modules/.bin/splat-transform
+GLTF_VALIDATOR_VERSION := 2.0.0-dev.3.10
 peer-tools:
 	@if [ -x $(SPLAT_TRANSFORM) ] && grep -q '"version": "$(SPLAT_TRANSFORM_VERSION)"' .tools/node_modules/@playcanvas/splat-transform/package.json 2>/dev/null; then :; \
 	elif command -v npm >/dev/null 2>&1; then \
 		mkdir -p .tools && npm install --prefix .tools --no-audit --no-fund --loglevel=error @playcanvas/splat-transform@$(SPLAT_TRANSFORM_VERSION) \
 		|| echo "make: could not install @playcanvas/splat-transform@$(SPLAT_TRANSFORM_VERSION); the peer tests will skip" >&2; \
 	else echo "make: npm not found; the file-format peer tests (splat-transform) will skip" >&2; fi
+	@if grep -q '"version": "$(GLTF_VALIDATOR_VERSION)"' .tools/node_modules/gltf-validator/package.json 2>/dev/null; then :; \
+	elif command -v npm >/dev/null 2>&1; then \
+		mkdir -p .tools && npm install --prefix .tools --no-audit --no-fund --loglevel=error gltf-validator@$(GLTF_VALIDATOR_VERSION) \
+		|| echo "make: could not install gltf-validator@$(GLTF_VALIDATOR_VERSION); its test will skip" >&2; fi
 
 require_python = test -n "$(2)" || { echo "make: Python $(1) was not found (looked for pyenv's $(1).* and python$(1) on PATH): install it (e.g. 'pyenv install $(1)') or pass PYTHON$(subst .,,$(1))=/path/to/python$(1)" >&2; exit 1; }
 
