@@ -29,20 +29,26 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import SplatFormatError
+from ..sh_basis import C0
 
 __all__ = ["SH_C0", "SNIFF_BYTES", "Bytes", "logit", "sigmoid", "normalized_quats"]
 
 #: Degree-0 SH basis constant: ``rgb = 0.5 + SH_C0 * dc``.
-SH_C0 = 0.28209479177387814
+SH_C0 = C0
 
 #: How many leading bytes a sniffer sees.
 SNIFF_BYTES = 4096
 
 
 def sigmoid(x) -> np.ndarray:
-    """Logistic function in float64 (opacity logit -> alpha in ``[0, 1]``)."""
+    """Logistic function in float64 (opacity logit -> alpha in ``[0, 1]``).
+
+    Accurate to a few ulps in relative terms for every ``x``, also very
+    negative ones (``exp(x) / (1 + exp(x))`` there), without overflow.
+    """
     x = np.asarray(x, np.float64)
-    return 0.5 * (1.0 + np.tanh(0.5 * x))
+    e = np.exp(-np.abs(x))
+    return np.where(x >= 0, 1.0 / (1.0 + e), e / (1.0 + e))
 
 
 def logit(alpha, eps: float = 1e-6) -> np.ndarray:

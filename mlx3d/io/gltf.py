@@ -81,9 +81,10 @@ import numpy as np
 
 from .. import __version__
 from ..errors import SplatFormatError
+from ..sh_basis import rotate_sh_rest
 from ..transforms import matrix_to_quaternion, quaternion_multiply, quaternion_to_matrix
 from .atomic import atomic_write
-from .codec import SH_C0, Bytes, normalized_quats
+from .codec import SH_C0, Bytes, normalized_quats, sigmoid
 from .ply import _F_REST_RE, _RESERVED, SplatArrays
 
 __all__ = ["read_gltf", "sniff_gltf", "write_gltf"]
@@ -474,41 +475,6 @@ def _primitive(doc: _Document, prim: dict, where: str, quantized_position: bool)
     return out
 
 
-def _sh_basis(dirs: np.ndarray) -> np.ndarray:
-    """SH bands 1-3 (3DGS order and signs, the extension's) at unit ``dirs (n, 3)``: ``(n, 15)``."""
-    x, y, z = dirs.T
-    xx, yy, zz = x * x, y * y, z * z
-    c1 = 0.4886025119029199
-    return np.stack([
-        -c1 * y, c1 * z, -c1 * x,
-        1.0925484305920792 * x * y, -1.0925484305920792 * y * z, 0.31539156525252005 * (2 * zz - xx - yy),
-        -1.0925484305920792 * x * z, 0.5462742152960396 * (xx - yy),
-        -0.5900435899266435 * y * (3 * xx - yy), 2.890611442640554 * x * y * z,
-        -0.4570457994644658 * y * (4 * zz - xx - yy), 0.3731763325901154 * z * (2 * zz - 3 * xx - 3 * yy),
-        -0.4570457994644658 * x * (4 * zz - xx - yy), 1.445305721320277 * z * (xx - yy),
-        -0.5900435899266435 * x * (xx - 3 * yy),
-    ], axis=1)
-
-
-def _sh_rotation(rot: np.ndarray) -> np.ndarray:
-    """``(15, 15)`` block-diagonal ``D`` with ``Y(R d) . (D c) == Y(d) . c`` for the rotation ``R``.
-
-    Each band's span is closed under rotations, so ``Y(e) D = Y(R^T e)``
-    identically; solved per band on 64 Fibonacci-sphere directions.
-    """
-    i = np.arange(64) + 0.5
-    z = 1.0 - i / 32.0
-    r = np.sqrt(1.0 - z * z)
-    phi = i * np.pi * (3.0 - np.sqrt(5.0))
-    e = np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
-    ye, yr = _sh_basis(e), _sh_basis(e @ rot)
-    d = np.zeros((15, 15))
-    for band in (1, 2, 3):
-        s = slice(band * band - 1, (band + 1) ** 2 - 1)
-        d[s, s] = np.linalg.pinv(ye[:, s]) @ yr[:, s]
-    return d
-
-
 def _to_ply_frame(doc: _Document, p: dict, world: np.ndarray, where: str) -> None:
     """Apply the node transform ``world`` and the glTF -> PLY half turn to ``p`` in place."""
     if p["log_scales"]:
@@ -543,8 +509,7 @@ def _to_ply_frame(doc: _Document, p: dict, world: np.ndarray, where: str) -> Non
         p["quats"] = matrix_to_quaternion(cu)
         p["scales"] = np.log(np.maximum(cs, _TINY))
     if k1:
-        d = _sh_rotation(rot)[:k1, :k1]
-        p["sh_rest"] = np.einsum("ij,njc->nic", d, p["sh_rest"])
+        p["sh_rest"] = rotate_sh_rest(p["sh_rest"].astype(np.float64), rot)
 
 
 def read_gltf(path: str | os.PathLike) -> SplatArrays:
@@ -613,13 +578,6 @@ def read_gltf(path: str | os.PathLike) -> SplatArrays:
 # writing
 # --------------------------------------------------------------------------
 
-def _sigmoid(x) -> np.ndarray:
-    """Logistic function in float64, accurate to the last bit also for very negative ``x``."""
-    x = np.asarray(x, np.float64)
-    e = np.exp(-np.abs(x))
-    return np.where(x >= 0, 1.0 / (1.0 + e), e / (1.0 + e))
-
-
 def _srgb_to_linear(c: np.ndarray) -> np.ndarray:
     return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
 
@@ -634,7 +592,7 @@ def _document(splats: SplatArrays, path: str) -> tuple[dict, bytes]:
     dc = np.asarray(splats.sh_dc, np.float32).reshape(n, 3)
     rest = np.asarray(splats.sh_rest, np.float32)
     k1 = rest.shape[1]
-    alpha = _sigmoid(splats.opacities)
+    alpha = sigmoid(splats.opacities)
     with np.errstate(over="ignore", invalid="ignore"):
         rgb = _srgb_to_linear(np.clip(0.5 + SH_C0 * dc.astype(np.float64), 0.0, 1.0))
         color = np.nan_to_num(np.concatenate([rgb, alpha[:, None]], axis=1) * 255.0)

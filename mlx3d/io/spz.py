@@ -102,6 +102,8 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from ..errors import SplatFormatError
+from ..sh_basis import rotate_sh_rest, sh_rest_rotation
+from ..transforms import quaternion_multiply
 from .atomic import atomic_write
 from .codec import logit
 from .ply import SplatArrays
@@ -398,10 +400,6 @@ def _coordinate_system(path: str, records) -> str | None:
 # --------------------------------------------------------------------------
 
 _DIRECTION = {"R": (0, 1.0), "L": (0, -1.0), "D": (1, 1.0), "U": (1, -1.0), "F": (2, 1.0), "B": (2, -1.0)}
-_SH_C1 = 0.4886025119029199
-_SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
-_SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
-          -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
 
 
 def frame_matrix(frame: str) -> np.ndarray:
@@ -413,49 +411,13 @@ def frame_matrix(frame: str) -> np.ndarray:
     return m
 
 
-def _sh_band(band: int, d: np.ndarray) -> np.ndarray:
-    """3DGS real SH basis of ``band`` (1-3) at unit rows of ``d``: ``(n, 2*band+1)``."""
-    x, y, z = d.T
-    if band == 1:
-        return _SH_C1 * np.stack([-y, z, -x], 1)
-    xx, yy, zz = x * x, y * y, z * z
-    if band == 2:
-        c = _SH_C2
-        return np.stack([c[0] * x * y, c[1] * y * z, c[2] * (2 * zz - xx - yy), c[3] * x * z,
-                         c[4] * (xx - yy)], 1)
-    c = _SH_C3
-    return np.stack([c[0] * y * (3 * xx - yy), c[1] * x * y * z, c[2] * y * (4 * zz - xx - yy),
-                     c[3] * z * (2 * zz - 3 * xx - 3 * yy), c[4] * x * (4 * zz - xx - yy),
-                     c[5] * z * (xx - yy), c[6] * x * (xx - 3 * yy)], 1)
-
-
 def sh_transform(m: np.ndarray, degree: int) -> np.ndarray:
     """``(K-1, K-1)`` block-diagonal map of ``sh_rest`` coefficients under ``p -> m p``.
 
     ``m`` is orthogonal (a rotation or reflection); band ``l`` of the result
-    satisfies ``Y_l(m d) . (D_l c) == Y_l(d) . c``, solved on 64 spread
-    directions (exact up to float64 rounding).
+    satisfies ``Y_l(m d) . (D_l c) == Y_l(d) . c``: :func:`mlx3d.sh_basis.sh_rest_rotation`.
     """
-    k1 = _SH_DIM[degree]
-    out = np.zeros((k1, k1))
-    i = np.arange(64) + 0.5
-    z = 1.0 - 2.0 * i / 64
-    phi = i * np.pi * (3.0 - np.sqrt(5.0))
-    e = np.stack([np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z], 1)
-    for band in range(1, degree + 1):
-        s = slice(band * band - 1, band * band + 2 * band)
-        out[s, s] = np.linalg.lstsq(_sh_band(band, e), _sh_band(band, e @ m), rcond=None)[0]
-    return out
-
-
-def _quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton products of ``w, x, y, z`` quaternions (broadcasting)."""
-    aw, ax, ay, az = np.moveaxis(a, -1, 0)
-    bw, bx, by, bz = np.moveaxis(b, -1, 0)
-    return np.stack([aw * bw - ax * bx - ay * by - az * bz,
-                     aw * bx + ax * bw + ay * bz - az * by,
-                     aw * by - ax * bz + ay * bw + az * bx,
-                     aw * bz + ax * by - ay * bx + az * bw], -1)
+    return sh_rest_rotation(m, degree)
 
 
 def _to_rdf(s: SplatArrays, frame: str) -> SplatArrays:
@@ -471,9 +433,9 @@ def _to_rdf(s: SplatArrays, frame: str) -> SplatArrays:
     rest = s.sh_rest.astype(np.float64)
     return SplatArrays(
         means=(s.means.astype(np.float64) @ m.T).astype(np.float32),
-        scales=s.scales, quats=_quat_multiply(turn_q, q).astype(np.float32),
+        scales=s.scales, quats=quaternion_multiply(turn_q, q).astype(np.float32),
         opacities=s.opacities, sh_dc=s.sh_dc,
-        sh_rest=np.einsum("kj,njc->nkc", sh_transform(m, s.sh_degree), rest).astype(np.float32),
+        sh_rest=rotate_sh_rest(rest, m).astype(np.float32),
         comments=list(s.comments))
 
 
