@@ -18,7 +18,7 @@ bpy = pytest.importorskip("bpy")
 from test_workflows import export_file, import_file, select_only  # noqa: E402  (tests/blender is on sys.path)
 
 REAL = Path(__file__).resolve().parents[1] / "data" / "formats" / "opensplat_500.ply"
-WRITABLE = [".ply", ".compressed.ply", ".spz", ".sog", ".splat", ".glb"]
+WRITABLE = [".ply", ".compressed.ply", ".spz", ".sog", ".splat", ".ksplat", ".glb"]
 FIELDS = ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest")
 
 
@@ -52,7 +52,7 @@ def test_export_format_choice_sets_the_extension(extension, clean_scene, tmp_pat
     op = bpy.ops.export_scene.gaussian_splat_ply
     props = op.get_rna_type().properties
     names = {item.identifier for item in props["file_format"].enum_items}
-    assert {"PLY", "SPZ", "COMPRESSED_PLY", "SOG", "SPLAT", "GLB"} <= names
+    assert {"PLY", "SPZ", "COMPRESSED_PLY", "SOG", "SPLAT", "KSPLAT", "GLB"} <= names
     operators = extension.addon.operators
     assert operators.WRITE_EXTENSIONS["COMPRESSED_PLY"] == ".compressed.ply"
     assert "*.spz" in operators.READ_GLOB and "*.ksplat" in operators.READ_GLOB
