@@ -7,7 +7,7 @@ and are built only when missing) and checks each: Blender's validator accepts
 it, its manifest names exactly its platform and the wheels inside, and the
 wheels are one ``mlx`` per Python (3.11, 3.13), MLX's library wheel, ours
 (compiled with ``_core`` per Python on linux-x64, the pure-Python one with
-``raster_math.h`` elsewhere), ``pillow`` per Python and ``plyfile``.
+``raster_math.h`` elsewhere), ``pillow`` and ``zstandard`` per Python and ``plyfile``.
 
 The expected tags below are written out here, not taken from package.py, so a
 change there has to agree with what the registry publishes. The pure wheel is
@@ -41,13 +41,14 @@ PYTHONS = ("cp311", "cp313")
 HEADER = ROOT / "mlx3d" / "csrc" / "raster_math.h"
 
 # Per Blender platform: the platform tag of mlx 0.32.4's wheels, MLX's library
-# wheel there, pillow 13.0.0's tag, the tags pip may pick for that platform, and
+# wheel there, pillow 13.0.0's and zstandard 0.25.0's tags, the tags pip may pick for that platform, and
 # its environment markers.
 EXPECTED = {
     "linux-x64": {
         "mlx": "manylinux_2_35_x86_64",
         "library": "mlx_cpu",
         "pillow": "manylinux_2_27_x86_64.manylinux_2_28_x86_64",
+        "zstandard": "manylinux2014_x86_64.manylinux_2_17_x86_64",
         "pip_tags": ("manylinux_2_35_x86_64", "manylinux_2_28_x86_64", "manylinux_2_17_x86_64"),
         "markers": {"sys_platform": "linux", "platform_system": "Linux", "platform_machine": "x86_64",
                     "os_name": "posix"},
@@ -56,6 +57,7 @@ EXPECTED = {
         "mlx": "macosx_14_0_arm64",
         "library": "mlx_metal",
         "pillow": "macosx_11_0_arm64",
+        "zstandard": "macosx_11_0_arm64",
         "pip_tags": ("macosx_14_0_arm64",),
         "markers": {"sys_platform": "darwin", "platform_system": "Darwin", "platform_machine": "arm64",
                     "os_name": "posix"},
@@ -64,6 +66,7 @@ EXPECTED = {
         "mlx": "win_amd64",
         "library": "mlx_cpu",
         "pillow": "win_amd64",
+        "zstandard": "win_amd64",
         "pip_tags": ("win_amd64",),
         "markers": {"sys_platform": "win32", "platform_system": "Windows", "platform_machine": "AMD64",
                     "os_name": "nt"},
@@ -72,6 +75,7 @@ EXPECTED = {
         "mlx": "manylinux_2_35_aarch64",
         "library": "mlx_cpu",
         "pillow": "manylinux_2_27_aarch64.manylinux_2_28_aarch64",
+        "zstandard": "manylinux2014_aarch64.manylinux_2_17_aarch64",
         "pip_tags": ("manylinux_2_35_aarch64", "manylinux_2_28_aarch64", "manylinux_2_17_aarch64"),
         "markers": {"sys_platform": "linux", "platform_system": "Linux", "platform_machine": "aarch64",
                     "os_name": "posix"},
@@ -141,6 +145,7 @@ def expected_wheels(pins, platform):
     for py in PYTHONS:
         names.add(f"mlx-{mlx}-{py}-{py}-{e['mlx']}.whl")
         names.add(f"pillow-{pins.bundled['pillow']}-{py}-{py}-{e['pillow']}.whl")
+        names.add(f"zstandard-{pins.bundled['zstandard']}-{py}-{py}-{e['zstandard']}.whl")
         if platform == "linux-x64":
             names.add(f"{own}-{py}-{py}-linux_x86_64.whl")
     if platform != "linux-x64":
@@ -365,7 +370,7 @@ def test_pip_install_of_the_pure_wheel_pulls_mlx_and_its_library(platform, pip_r
     assert {n for n in got if n.startswith("mlx") and n != pins.own_name} == {"mlx", e["library"]}, got
     assert got["mlx"] == f"mlx-{mlx}-{py}-{py}-{e['mlx']}.whl"
     assert got[e["library"]] == f"{e['library']}-{mlx}-py3-none-{e['mlx']}.whl"
-    assert {"numpy", "plyfile", "pillow", pins.own_name} <= set(got)
+    assert {"numpy", "plyfile", "pillow", "zstandard", pins.own_name} <= set(got)
 
 
 def test_mlx_check_follows_markers_and_mlx_metadata(package, zips, pins):

@@ -39,7 +39,7 @@ def test_manifest_fields():
 def test_manifest_wheels_follow_the_pins(package_script):
     package = package_script
     pins = package.read_pins()
-    assert set(pins.bundled) == {"mlx", "plyfile", "pillow"}  # numpy comes with Blender
+    assert set(pins.bundled) == {"mlx", "plyfile", "pillow", "zstandard"}  # numpy comes with Blender
     want = package.manifest_wheel_paths(package.expected_wheels(pins, package.PLATFORMS, package.DEFAULT_PYTHONS))
     assert manifest()["wheels"] == want, "stale wheels list: run `make extension`"
     names = " ".join(want)
