@@ -5,7 +5,7 @@ For each format ``mlx3d.io.write_splats`` writes, on a real scene (default:
 
 - **size** of the file and its ratio to the PLY;
 - **write / read**: best of ``--repeat`` runs of ``write_splats`` / ``read_splats`` (seconds);
-- **PSNR**: the decoded splats rendered from ``--views`` cameras on a ring around the
+- **PSNR**: the decoded splats rendered from ``--views`` cameras on an arc above the
   scene against the PLY's own render with the same renderer (mean and worst view, dB;
   ``inf`` is bit-identical);
 - the same for ``@playcanvas/splat-transform`` (``tests/peer.py`` finds it): its file
@@ -51,15 +51,19 @@ def best_of(fn, repeat: int) -> float:
 
 
 def cameras(splats, views: int, size: int):
-    """``views`` cameras on a ring around the splats' median, looking at it."""
+    """``views`` cameras above the splats' median on an arc of 60 degrees, looking at it.
+
+    The default scene was captured from one side (+z of its median, y down), so the
+    arc is on that side; cameras elsewhere would sit inside its backdrop splats.
+    """
     from mlx3d.cameras import Camera
 
     centre = np.median(splats.means, axis=0).astype(np.float64)
     spread = np.percentile(np.linalg.norm(splats.means - centre, axis=1), 90)
     out = []
     for i in range(views):
-        a = 2 * math.pi * i / views
-        eye = centre + 1.6 * spread * np.array([math.cos(a), 0.35, math.sin(a)])
+        a = math.pi / 2 + math.radians(60) * (i / max(views - 1, 1) - 0.5)
+        eye = centre + spread * np.array([0.9 * math.cos(a), -1.3, 0.9 * math.sin(a)])
         out.append(Camera.look_at(eye=eye, at=centre, up=(0, -1, 0), width=size, height=size, fov=60.0))
     return out
 

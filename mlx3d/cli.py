@@ -14,6 +14,7 @@ import argparse
 import json
 import os
 import sys
+import warnings
 
 import numpy as np
 
@@ -42,7 +43,6 @@ def _stats(values: np.ndarray) -> dict:
 
 def splat_summary(path: str) -> dict:
     """Facts about a splat file: format, count, SH degree, bounds, opacity/scale statistics, extras."""
-    import warnings
 
     from .io import detect_format, read_splats
 
@@ -504,7 +504,11 @@ def main(argv=None) -> int:
     try:
         if args.command in _OUTPUTS:
             format_for_path(getattr(args, _OUTPUTS[args.command]), writable=True)
-        args.func(args)
+        with warnings.catch_warnings():
+            # What was dropped or kept (extras a format cannot store, NaN rows) as one line each.
+            warnings.showwarning = lambda message, *rest, **kw: print(
+                f"mlx3d {args.command}: warning: {message}", file=sys.stderr, flush=True)
+            args.func(args)
     except KeyboardInterrupt:
         print("mlx3d: cancelled", file=sys.stderr)
         return 130

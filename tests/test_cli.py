@@ -178,3 +178,15 @@ def test_convert_refuses_unknown_outputs_before_reading(tmp_path, capsys):
         assert bad in err and "unknown splat file extension" in err
         assert "reading" not in err  # refused before any work
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.ply"]
+
+
+def test_what_a_format_cannot_store_is_said_in_one_line(tmp_path, capsys):
+    from mlx3d.io import SplatArrays, read_splat_ply, write_splat_ply
+
+    make_file(tmp_path / "a.ply", n=30)
+    s = read_splat_ply(tmp_path / "a.ply")
+    write_splat_ply(tmp_path / "b.ply", SplatArrays(s.means, s.scales, s.quats, s.opacities, s.sh_dc, s.sh_rest,
+                                                    extra={"confidence": np.ones(30, np.float32)}))
+    assert main(["convert", str(tmp_path / "b.ply"), str(tmp_path / "c.spz")]) == 0
+    err = capsys.readouterr().err
+    assert "mlx3d convert: warning:" in err and "confidence" in err and "c.spz" in err
