@@ -43,7 +43,6 @@ def _stats(values: np.ndarray) -> dict:
 
 def splat_summary(path: str) -> dict:
     """Facts about a splat file: format, count, SH degree, bounds, opacity/scale statistics, extras."""
-
     from .io import detect_format, read_splats
 
     fmt = detect_format(path)
