@@ -1,4 +1,4 @@
-"""File input/output for splats (numpy only: importable without MLX, e.g. in Blender).
+"""File input/output for splats, without MLX (numpy; Pillow for SOG images, zstandard for SPZ v4).
 
 - :func:`read_splats` / :func:`write_splats`: every splat file format (PLY,
   compressed PLY, SPZ, ``.splat``, ``.ksplat``, SOG, glTF), recognised by
