@@ -109,3 +109,24 @@ def test_isotropic_noise_has_the_original_scale():
         ours.sgld_noise = saved
     assert seen["noise_lr"] == 0.0
     assert seen["isotropic"] == pytest.approx(0.01 * 3.0 * math.sqrt(1.6e-4 * 3.0))
+
+
+def test_an_unknown_projection_is_refused_at_construction():
+    """The original raises ValueError naming ``projection`` when the trainer is built with another name."""
+    model = GaussianModel.from_points(np.random.default_rng(0).normal(size=(8, 3)))
+    with pytest.raises(ValueError, match="projection"):
+        GaussianTrainer(model, TrainerConfig(projection="bad"))
+    for name in ("ewa", "ut", "auto"):
+        assert GaussianTrainer(model, TrainerConfig(projection=name)).config.projection == name
+
+
+def test_info_lr_means_is_the_rate_the_step_used():
+    """``info['lr_means']`` is the means rate of the step just taken: the first equals ``learning_rates()`` before it."""
+    points, colors, camera = _scene(30)
+    model = GaussianModel.from_points(points, colors)
+    config = TrainerConfig(lr_means=1e-2, lr_means_final=1e-4, lr_means_max_steps=2, densify_from=10**6, sh_increase_every=10**6)
+    trainer = GaussianTrainer(model, config, scene_extent=2.0)
+    before = trainer.learning_rates()["means"]
+    rates = [trainer.step(camera, mx.zeros((24, 32, 3)))["lr_means"] for _ in range(3)]
+    assert before == pytest.approx(2e-2)
+    assert rates == pytest.approx([2e-2, math.sqrt(1e-2 * 1e-4) * 2.0, 2e-4])

@@ -27,6 +27,7 @@ import numpy as np
 
 from ..errors import Mlx3dError
 from ..render import activation, render_gaussians
+from ..render.pipeline import PROJECTIONS
 from ..splatting.model import PARAM_NAMES, GaussianModel
 from .adam import Adam, all_finite
 from .density import add_gaussians_mcmc, densify_and_prune, relocate_dead, reset_opacities, sgld_noise
@@ -124,6 +125,8 @@ class TrainerConfig:
             raise ValueError(f"method {self.method!r} is not available; use one of {METHODS}")
         if self.steps < 1:
             raise ValueError(f"steps must be >= 1, got {self.steps}")
+        if self.projection not in PROJECTIONS:
+            raise ValueError(f"projection must be one of {PROJECTIONS}, got {self.projection!r}")
         if self.background is None:
             self.background = "white" if self.white_background else "black"
         for name in ("background", "opaque_background"):
@@ -376,7 +379,7 @@ class GaussianTrainer:
         info["stages"] = tuple(ran)
         # the original mlx3D's keys
         info.update({
-            "method": c.method, "active_sh_degree": self.active_sh_degree, "lr_means": self.learning_rates()["means"],
+            "method": c.method, "active_sh_degree": self.active_sh_degree, "lr_means": self.optimizer.lrs["means"],
             "densify": info["densify"] if "densify" in info else (
                 {"relocated": info["relocate"], "added": info.get("grow", 0)} if "relocate" in info else None),
             "opacity_reset": "reset_opacity" in plan.events, "sh_degree_changed": "sh_up" in plan.events,
