@@ -130,3 +130,50 @@ def test_info_lr_means_is_the_rate_the_step_used():
     rates = [trainer.step(camera, mx.zeros((24, 32, 3)))["lr_means"] for _ in range(3)]
     assert before == pytest.approx(2e-2)
     assert rates == pytest.approx([2e-2, math.sqrt(1e-2 * 1e-4) * 2.0, 2e-4])
+
+
+def test_optimizers_expose_each_parameters_adam_state():
+    """``trainer.optimizers[name].state[name]`` holds that parameter's Adam moments ``m``/``v`` (read and
+    written through), ``.state['step']`` the step count; a densify resize keeps surviving rows, new rows zero."""
+    points, colors, camera = _scene(6)
+    model = GaussianModel.from_points(points, colors)
+    trainer = GaussianTrainer(model, TrainerConfig(densify_from=10**6))
+    trainer.step(camera, mx.zeros((24, 32, 3)))
+    assert set(trainer.optimizers) == {"means", "scales", "quats", "opacities", "sh_dc", "sh_rest"}
+    state = trainer.optimizers["scales"].state
+    assert int(state["step"]) == 1 and float(trainer.optimizers["scales"].learning_rate) == pytest.approx(5e-3)
+    np.testing.assert_array_equal(np.array(state["scales"]["m"]), np.array(trainer.optimizer.m["scales"]))
+    moments = np.arange(18, dtype=np.float32).reshape(6, 3)
+    state["scales"]["m"], state["scales"]["v"] = mx.array(moments), mx.array(moments + 1)
+    state["step"] = mx.array(9, dtype=mx.uint64)
+    assert trainer.optimizer.step_count == 9
+    trainer._resize_optimizer_states_after_densify({"_keep_idx": np.array([4, 0]), "_new_count": 1})
+    expected = np.concatenate([moments[[4, 0]], np.zeros((1, 3), np.float32)])
+    np.testing.assert_array_equal(np.array(trainer.optimizers["scales"].state["scales"]["m"]), expected)
+    np.testing.assert_array_equal(np.array(trainer.optimizers["scales"].state["scales"]["v"])[:2], moments[[4, 0]] + 1)
+    assert trainer.optimizer.m["means"].shape == (3, 3)
+
+
+def test_render_loss_is_the_steps_loss_with_geometry_metrics():
+    """``_render_loss(params, probe, camera, target, background)`` returns ``(loss, (image, radii, metrics))``: the
+    loss the next step takes, and the 2DGS geometry terms unweighted (0 unless their weights are set)."""
+    points, colors, camera = _scene(40)
+    model = GaussianModel.from_points(points * 0.5, colors)
+    target = mx.array(np.random.default_rng(3).uniform(size=(24, 32, 3)).astype(np.float32))
+    probe = mx.zeros((len(points), 2))
+    weights = {"lambda_2d_depth_variance": 0.1, "lambda_2d_normal_consistency": 0.05, "geometry_min_alpha": 0.001}
+    base = GaussianTrainer(model.copy(), TrainerConfig(method="2dgs", densify_from=10**6))
+    weighted = GaussianTrainer(model.copy(), TrainerConfig(method="2dgs", densify_from=10**6, **weights))
+    params = dict(weighted.model.params)  # with the 2DGS thickness both trainers applied
+    base_loss, (image, radii, base_metrics) = base._render_loss(params, probe, camera, target, mx.zeros(3))
+    loss, (_, _, metrics) = weighted._render_loss(params, probe, camera, target, mx.zeros(3))
+    assert image.shape == (24, 32, 3) and radii.shape[0] == len(points)
+    assert float(base_metrics["depth_variance"]) == 0.0 and float(base_metrics["normal_consistency"]) == 0.0
+    assert float(metrics["depth_variance"]) > 0.0 and float(metrics["normal_consistency"]) > 0.0
+    assert float(loss) == pytest.approx(float(base_loss) + 0.1 * float(metrics["depth_variance"])
+                                        + 0.05 * float(metrics["normal_consistency"]), rel=1e-5)
+    grads = mx.grad(lambda p, q: base._render_loss(p, q, camera, target, mx.zeros(3))[0], argnums=(0, 1))(params, probe)
+    assert float(mx.abs(grads[1]).sum()) > 0.0 and float(mx.abs(grads[0]["means"]).sum()) > 0.0
+    info = weighted.step(camera, target)
+    assert info["loss"] == pytest.approx(float(loss), rel=1e-5)
+    assert info["geometry"] == pytest.approx({k: float(v) for k, v in metrics.items()}, rel=1e-5)

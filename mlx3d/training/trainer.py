@@ -272,6 +272,51 @@ class GaussianTrainer:
             return tuple(self.rng.uniform(0, 1, 3))
         return tuple(bg)
 
+    def _loss(self, p, offset, grid, camera, target, mask, bg, plan, degree, image_index=None):
+        """(loss, render output) of one view: the photometric loss plus the terms in ``plan.losses``.
+
+        p: the raw parameters; offset: None or (N, 2) added to the 2D means
+        (dL/d offset is the screen-space gradient); grid: the bilateral grid
+        when ``image_index`` is given. ``out['ran']`` lists the stages run.
+        """
+        c = self.config
+        use_grid = self.bilateral is not None and image_index is not None
+        r, terms = plan.render, set(plan.losses)
+        sh = (p["sh_dc"], p["sh_rest"])  # read in place by the CPU kernel, no concatenation
+        out = render_gaussians(
+            camera, p["means"], p["quats"], activation.exp(p["scales"], r.backend), activation.sigmoid(p["opacities"], r.backend),
+            sh=sh, sh_degree=degree,
+            background=bg, antialias=r.antialias, projection=r.projection, means2d_offset=offset, render_depth=r.depth,
+            render_depth_variance=r.depth_variance, render_normals=r.normals, planar_depth=r.planar_depth, backend=r.backend,
+        )
+        ran = list(out["stages"])
+        image = out["image"]
+        if use_grid:
+            image = self.bilateral.apply(image, image_index, grid)
+            out = dict(out, image=image)
+            ran.append("bilateral_grid")
+        loss = photometric_loss(image, target, c.lambda_dssim, mask, backend=r.backend)  # skips SSIM when lambda_dssim is 0
+        ran += ["loss_l1", "loss_dssim"] if c.lambda_dssim > 0 else ["loss_l1"]
+        if "depth_variance" in terms:
+            out["depth_variance_loss"] = depth_variance_loss(out["depth_variance"], out["alpha"], c.geometry_min_alpha, self.scene_extent)
+            loss = loss + c.lambda_2d_depth_variance * out["depth_variance_loss"]
+            ran.append("loss_depth_variance")
+        if "normal_consistency" in terms:
+            out["normal_loss"] = normal_consistency_loss(out["normals"], out["depth"], out["alpha"], camera, self.unprojector, c.geometry_min_alpha)
+            loss = loss + c.lambda_2d_normal_consistency * out["normal_loss"]
+            ran.append("loss_normal_consistency")
+        if "bilateral_tv" in terms:
+            loss = loss + c.lambda_bilateral_tv * self.bilateral.tv_loss(grid)
+            ran.append("loss_bilateral_tv")
+        if "opacity_l1" in terms:
+            loss = loss + c.mcmc_opacity_reg * mx.mean(activation.sigmoid(p["opacities"], r.backend))
+            ran.append("loss_opacity_l1")
+        if "scale_l1" in terms:
+            loss = loss + c.mcmc_scale_reg * mx.mean(activation.exp(p["scales"], r.backend))
+            ran.append("loss_scale_l1")
+        out["ran"] = ran
+        return loss, out
+
     # ------------------------------------------------------------------ one step
     def step(self, camera, target, weight=None, background=None, image_index: int | None = None) -> dict:
         """One optimisation step on one view. target (H,W,3) in [0,1]; weight (H,W) or None.
@@ -291,43 +336,10 @@ class GaussianTrainer:
         n = len(self.model)
         degree = min(self.active_sh_degree, self.model.sh_degree)
         plan = step_plan(c, camera, degree, self.step_count)
-        r, terms = plan.render, set(plan.losses)
+        r = plan.render
 
         def loss_fn(p, offset, grid):
-            sh = (p["sh_dc"], p["sh_rest"])  # read in place by the CPU kernel, no concatenation
-            out = render_gaussians(
-                camera, p["means"], p["quats"], activation.exp(p["scales"], r.backend), activation.sigmoid(p["opacities"], r.backend),
-                sh=sh, sh_degree=degree,
-                background=bg, antialias=r.antialias, projection=r.projection, means2d_offset=offset, render_depth=r.depth,
-                render_depth_variance=r.depth_variance, render_normals=r.normals, planar_depth=r.planar_depth, backend=r.backend,
-            )
-            ran = list(out["stages"])
-            image = out["image"]
-            if use_grid:
-                image = self.bilateral.apply(image, image_index, grid)
-                out = dict(out, image=image)
-                ran.append("bilateral_grid")
-            loss = photometric_loss(image, target, c.lambda_dssim, mask, backend=r.backend)  # skips SSIM when lambda_dssim is 0
-            ran += ["loss_l1", "loss_dssim"] if c.lambda_dssim > 0 else ["loss_l1"]
-            if "depth_variance" in terms:
-                out["depth_variance_loss"] = depth_variance_loss(out["depth_variance"], out["alpha"], c.geometry_min_alpha, self.scene_extent)
-                loss = loss + c.lambda_2d_depth_variance * out["depth_variance_loss"]
-                ran.append("loss_depth_variance")
-            if "normal_consistency" in terms:
-                out["normal_loss"] = normal_consistency_loss(out["normals"], out["depth"], out["alpha"], camera, self.unprojector, c.geometry_min_alpha)
-                loss = loss + c.lambda_2d_normal_consistency * out["normal_loss"]
-                ran.append("loss_normal_consistency")
-            if "bilateral_tv" in terms:
-                loss = loss + c.lambda_bilateral_tv * self.bilateral.tv_loss(grid)
-                ran.append("loss_bilateral_tv")
-            if "opacity_l1" in terms:
-                loss = loss + c.mcmc_opacity_reg * mx.mean(activation.sigmoid(p["opacities"], r.backend))
-                ran.append("loss_opacity_l1")
-            if "scale_l1" in terms:
-                loss = loss + c.mcmc_scale_reg * mx.mean(activation.exp(p["scales"], r.backend))
-                ran.append("loss_scale_l1")
-            out["ran"] = ran
-            return loss, out
+            return self._loss(p, offset, grid, camera, target, mask, bg, plan, degree, image_index if use_grid else None)
 
         grid_in = self.grid_optimizer.current(self.bilateral, image_index) if use_grid else mx.zeros((1,))
         # dL/d(means2d) through a zero offset, only for the densification statistics
