@@ -177,3 +177,18 @@ def test_render_loss_is_the_steps_loss_with_geometry_metrics():
     info = weighted.step(camera, target)
     assert info["loss"] == pytest.approx(float(loss), rel=1e-5)
     assert info["geometry"] == pytest.approx({k: float(v) for k, v in metrics.items()}, rel=1e-5)
+
+
+def test_mcmc_relocates_its_fraction_when_every_gaussian_is_below_min_opacity():
+    """With every opacity under ``mcmc_min_opacity``, an MCMC event still moves ``mcmc_relocate_frac`` of N,
+    onto copies of the others, at a fixed count and with finite moments."""
+    points, colors, camera = _scene(40)
+    model = GaussianModel.from_points(points, colors)
+    model.params["opacities"] = mx.full((40,), -3.0)  # opacity 0.047
+    config = TrainerConfig(method="mcmc", densify_from=1, densify_every=2, mcmc_relocate_frac=0.25, mcmc_min_opacity=0.2,
+                           mcmc_jitter_scale=0.0, mcmc_noise_scale=0.0)
+    trainer = GaussianTrainer(model, config)
+    events = [trainer.step(camera, mx.zeros((24, 32, 3)))["densify"] for _ in range(2)]
+    assert events[0] is None and events[1]["relocated"] == 10
+    assert len(model) == 40
+    assert np.isfinite(np.array(trainer.optimizers["means"].state["means"]["m"])).all()

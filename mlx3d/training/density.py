@@ -194,7 +194,8 @@ def relocate_dead(params: dict, optimizer=None, min_opacity: float = 0.005, rng=
     """Move Gaussians with opacity ≤ ``min_opacity`` onto live ones sampled in proportion to
     opacity, correcting opacity and scale for the copies. N stays constant.
 
-    max_frac: at most this fraction of N moves per call (the most transparent first);
+    max_frac: at most this fraction of N moves per call (the most transparent first; when
+    every Gaussian is dead, the others are the sources, so a fraction below 1 still moves);
     jitter_scale: moved copies are offset by that many of their standard deviations in a
     random direction (0: on top of their source, as in the paper). Returns (params, moved)."""
     rng = rng or np.random.default_rng(0)
@@ -205,6 +206,8 @@ def relocate_dead(params: dict, optimizer=None, min_opacity: float = 0.005, rng=
     limit = int(max_frac * n)
     if dead.size > limit:
         dead = np.sort(dead[np.argsort(opacity[dead], kind="stable")[:limit]])
+    if alive.size == 0:  # all dead: the copies' sources are the rows this call does not move
+        alive = np.setdiff1d(np.arange(n), dead)
     if dead.size == 0 or alive.size == 0:
         return params, 0
     sources = alive[_sample_by_opacity(opacity[alive], dead.size, rng)]
