@@ -307,6 +307,25 @@ def test_extract_surface_mesh_returns_meshes():
         model.extract_surface_mesh(resolution=1)
 
 
+
+def test_extract_surface_mesh_hands_the_selected_surfels_to_poisson_reconstruction(monkeypatch):
+    """mlx3D: ``mlx3d.ops.poisson_reconstruction(points, normals, resolution, padding)`` of the ``max_points``
+    selected surfels. Ours adds keywords (area weights, colours, trim, progress), so a replacement takes ``**kw``."""
+    import mlx3d.ops as ops
+
+    model = sphere_surfels()
+    seen = {}
+
+    def replacement(points, normals, resolution, padding, **kw):
+        seen.update(points=points, normals=normals, resolution=resolution, padding=padding, keywords=set(kw))
+        return Meshes([mx.array(points[:3])], [mx.array([[0, 1, 2]], dtype=mx.int32)])
+
+    monkeypatch.setattr(ops, "poisson_reconstruction", replacement)
+    assert isinstance(model.extract_surface_mesh(resolution=12, padding=0.2, max_points=4), Meshes)
+    assert seen["points"].shape == (4, 3) and seen["normals"].shape == (4, 3)
+    assert (seen["resolution"], seen["padding"]) == (12, 0.2)
+    assert seen["keywords"] == {"weights", "colors", "trim", "progress"}
+
 def test_meshes_views_of_a_batch():
     tet_v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32)
     tet_f = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], np.int64)

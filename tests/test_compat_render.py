@@ -416,3 +416,18 @@ def test_positional_calls_in_the_original_order():
     close(with_sh["image"], render_gaussians(cam, means, quats, scales, opac, colors=rgb, background=bg)["image"], 1e-6)
     depth = render_gaussian_depth(cam, means, quats, scales, opac, True, True, "ewa")
     close(depth["depth"], render_gaussian_depth(cam, means, quats, scales, opac, antialias=True)["depth"], 0)
+
+
+def test_camera_matrices_in_mlx_arithmetic():
+    """mlx3D's ``x_cam = R x + t`` with its MLX matrices: ours are float64 numpy, so MLX arithmetic converts them
+    first (``mx.array(cam.R)``, ``cam.world_to_camera_matrix``); the result is the projection's depth and means2d."""
+    cam = Camera.look_at(eye=(0.3, -0.2, -3.0), at=(0, 0, 0), width=80, height=48, fov=55.0)
+    means = mx.array(np.random.default_rng(11).normal(size=(16, 3)).astype(np.float32) * 0.4)
+    assert isinstance(cam.R, np.ndarray) and cam.R.dtype == np.float64  # a documented difference
+    p_cam = means @ mx.array(cam.R, dtype=mx.float32).T + mx.array(cam.t, dtype=mx.float32)
+    view = cam.world_to_camera_matrix
+    np.testing.assert_allclose(np.array(means @ view[:3, :3].T + view[:3, 3]), np.array(p_cam), atol=1e-6)
+    out = project_gaussians(cam, means, mx.array(np.tile([1.0, 0, 0, 0], (16, 1)).astype(np.float32)), mx.full((16, 3), 0.05))
+    np.testing.assert_allclose(np.array(out["depths"]), np.array(p_cam[:, 2]), atol=1e-5)
+    uv = mx.stack([cam.fx * p_cam[:, 0] / p_cam[:, 2] + cam.cx, cam.fy * p_cam[:, 1] / p_cam[:, 2] + cam.cy], axis=-1)
+    np.testing.assert_allclose(np.array(out["means2d"]), np.array(uv), atol=1e-4)
