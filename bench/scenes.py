@@ -41,6 +41,18 @@ synthetic_nopoints
     in it, and NO initial points, so training starts from random ones.
     Training views at random on the upper hemisphere, validation views at
     other random places, test views on a ring at 30 degrees between them.
+open_points, open_nopoints
+    An open scene of another kind than ``outdoor`` (and than the demo): a
+    stone plaza (Voronoi cells) running out to the horizon under a warm sky, a
+    standing ring, a striped monolith, a chequered ball and a brick plinth
+    spread over 2.5 units. 72 training views on three rings (10, 25 and 45
+    degrees elevation, 24 each, 3.6 units away), 12 held-out views at other
+    heights, distances and azimuths. ``open_nopoints`` is what a capture app
+    or Blender's NeRF exporter gives: the NeRF-synthetic layout
+    (``transforms_train.json`` / ``transforms_test.json`` with ``camera_model``
+    and ``fl_x``), opaque PNGs, no points. ``open_points`` is the same photos
+    in the nerfstudio layout with 20k points on the objects and the plaza
+    within 3 units: the from-points result to compare with.
 
 Each dataset folder also keeps the capture's ``mesh.ply`` (the captured
 objects' triangles, ground truth for mesh extraction). Capture defaults that
@@ -65,7 +77,7 @@ import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
-SCENES = ("outdoor", "exposure", "object_rgba", "synthetic_nopoints")
+SCENES = ("outdoor", "exposure", "object_rgba", "synthetic_nopoints", "open_points", "open_nopoints")
 FORMAT_VERSION = 2  # bump when a scene changes, so stale renders are not reused
 
 # Outdoor and exposure cameras.
@@ -99,6 +111,17 @@ OBJECT_HELD_OUT = (
     (25.0, 1.4, 140.0), (25.0, 1.4, 320.0),
     (0.0, 1.0, 75.0), (55.0, 0.85, 165.0),
 )
+
+OPEN_RINGS = (10.0, 25.0, 45.0)
+OPEN_VIEWS = 72
+OPEN_DISTANCE = 3.6
+OPEN_LENS = 35.0  # mm on a 36 mm sensor: 54 degrees across
+OPEN_HELD_OUT = (
+    (18.0, 1.0, 7.5), (18.0, 1.0, 187.5), (35.0, 1.0, 97.5), (35.0, 1.0, 277.5),
+    (60.0, 1.0, 52.5), (60.0, 1.0, 232.5), (18.0, 0.8, 142.5), (35.0, 0.8, 322.5),
+    (25.0, 1.25, 37.5), (25.0, 1.25, 217.5), (50.0, 0.9, 127.5), (14.0, 1.1, 307.5),
+)
+OPEN_POINT_RADIUS = 3.0
 
 SYNTH_DISTANCE = 4.0
 SYNTH_LENS = 50.0  # camera_angle_x = 2 atan(18 / 50) = 0.6911, as in the NeRF-synthetic scenes
@@ -277,6 +300,31 @@ def build_outdoor(bpy):
     return scene, objects + [near], centre
 
 
+def build_open(bpy):
+    """The open plaza scene; returns (scene, meshes to sample points on, centre of the objects)."""
+    scene = _new_scene(bpy, sky_rgb=(0.85, 0.70, 0.55), sky_strength=1.0, sun_strength=3.5, sun_elevation=35.0, sun_azimuth=-60.0)
+    plaza = _material(bpy, "Plaza stones", "VORONOI", [(0.35, 0.33, 0.30), (0.55, 0.50, 0.42), (0.25, 0.22, 0.20)],
+                      scale=4.0, roughness=0.85)
+    near, _ = _ground(bpy, scene, plaza, OPEN_POINT_RADIUS, 100.0)
+    ring = _add(bpy, "torus", "Ring", _material(bpy, "Ring bands", "WAVE", [(0.10, 0.30, 0.60), (0.90, 0.85, 0.70)], scale=3.0,
+                                                  Distortion=2.0),
+                location=(-0.8, 0.3, 0.45), rotation=(math.radians(90.0), 0.0, math.radians(30.0)), major_radius=0.35,
+                minor_radius=0.1, major_segments=64, minor_segments=16, smooth=True)
+    monolith = _add(bpy, "cube", "Monolith", _material(bpy, "Monolith stripes", "WAVE", [(0.15, 0.12, 0.10), (0.80, 0.35, 0.10)],
+                                                         scale=5.0, Distortion=1.0, wave_type="BANDS", bands_direction="Z"),
+                    location=(0.7, 0.6, 0.6), rotation=(0.0, 0.0, math.radians(-20.0)), size=1.0, scale=(0.3, 0.15, 1.2))
+    ball = _add(bpy, "uv_sphere", "Chequered ball", _material(bpy, "Ball checker", "CHECKER", [(0.10, 0.45, 0.15), (0.95, 0.95, 0.90)],
+                                                               scale=8.0),
+                location=(0.35, -0.7, 0.25), radius=0.25, segments=48, ring_count=24, smooth=True)
+    plinth = _add(bpy, "cylinder", "Plinth", _material(bpy, "Plinth bricks", "BRICK", [(0.55, 0.25, 0.12), (0.40, 0.30, 0.25), (0.7, 0.7, 0.65)],
+                                                         scale=5.0, roughness=0.8, upright=True),
+                  location=(-0.45, -0.55, 0.15), radius=0.35, depth=0.3, vertices=48, smooth=True)
+    objects = [ring, monolith, ball, plinth]
+    for obj in (monolith, plinth):
+        _remove_bottom(bpy, obj)
+    return scene, objects + [near], _centre(objects)
+
+
 def build_object(bpy):
     """A small house for object_rgba; returns (scene, meshes, centre)."""
     scene = _new_scene(bpy, sky_rgb=(0.6, 0.6, 0.6), sky_strength=1.0, sun_strength=3.0, sun_elevation=55.0, sun_azimuth=-40.0)
@@ -426,12 +474,66 @@ def capture_outdoor(bpy, capture, folder, args):
     }
 
 
-def _camera_notes(centre, lens, distance, rings, held_out):
+def _camera_notes(centre, lens, distance, rings, held_out, views=RING_VIEWS):
     return {
         "look_at": [round(float(c), 4) for c in centre], "lens_mm": lens, "sensor_mm": 36.0,
-        "train": f"{RING_VIEWS} views on rings at {', '.join(f'{e:g}' for e in rings)} degrees elevation, "
+        "train": f"{views} views on rings at {', '.join(f'{e:g}' for e in rings)} degrees elevation, "
                  f"distance {distance}",
         "held_out": [{"elevation": e, "distance": round(distance * s, 4), "azimuth": a} for e, s, a in held_out],
+    }
+
+
+def capture_open(bpy, capture, folder, args):
+    scene, objects, centre = build_open(bpy)
+    poses = capture.orbit_poses(centre, OPEN_DISTANCE, OPEN_VIEWS, OPEN_RINGS)
+    poses += [_view(capture, centre, OPEN_DISTANCE * scale, e, a) for e, scale, a in OPEN_HELD_OUT]
+    _add_cameras(bpy, scene, poses, OPEN_LENS)
+    held_out = list(range(OPEN_VIEWS, len(poses)))
+    info = _capture(capture, folder, "open_points", objects=objects, use_scene_cameras=True, resolution=(args.size, args.size),
+                    samples=args.samples, num_points=20000, held_out=held_out, transparent=False, colmap=False, seed=SEED,
+                    scene=scene)
+    return {
+        "name": "open_points",
+        "purpose": "an open scene (a plaza to the horizon, sky, four objects), opaque photos, trained from its points: "
+                   "the result open_nopoints is compared with",
+        "layout": "nerfstudio (transforms.json with train_filenames / test_filenames, points3d.ply)",
+        "background": "sky colour from the World background, alpha 255",
+        "objects": sorted(o.name for o in scene.objects if o.type == "MESH"),
+        "points": {"count": info["num_points"], "on": f"the objects and the plaza within {OPEN_POINT_RADIUS} units of the origin",
+                   "sampled_on": [o.name for o in objects]},
+        "cameras": _camera_notes(centre, OPEN_LENS, OPEN_DISTANCE, OPEN_RINGS, OPEN_HELD_OUT, OPEN_VIEWS),
+        "train_views": len(info["train_filenames"]), "test_views": len(info["test_filenames"]),
+        "settings": _settings(args),
+    }
+
+
+def make_open_nopoints(source, folder, args):
+    """``open_points``' photos in the NeRF-synthetic layout with nerfstudio intrinsics and no points."""
+    with open(os.path.join(source, "transforms.json"), encoding="utf-8") as f:
+        meta = json.load(f)
+    intrinsics = {"camera_model": "PINHOLE", **{k: meta[k] for k in ("fl_x", "fl_y", "cx", "cy", "w", "h")}}
+    by_name = {fr["file_path"]: fr for fr in meta["frames"]}
+    os.makedirs(folder)
+    for split, names in (("train", meta["train_filenames"]), ("test", meta["test_filenames"])):
+        os.makedirs(os.path.join(folder, split))
+        frames = []
+        for k, name in enumerate(names):
+            shutil.copyfile(os.path.join(source, name), os.path.join(folder, split, f"r_{k}.png"))
+            frames.append({"file_path": f"./{split}/r_{k}.png", "transform_matrix": by_name[name]["transform_matrix"]})
+        _write_json(os.path.join(folder, f"transforms_{split}.json"), {**intrinsics, "frames": frames})
+    with open(os.path.join(source, "scene.json"), encoding="utf-8") as f:
+        source_meta = json.load(f)
+    return {
+        "name": "open_nopoints",
+        "purpose": "an open scene as a capture app or Blender's NeRF exporter gives it: NeRF-synthetic layout, opaque "
+                   "PNGs, no points (training starts from the photos alone); the same photos as open_points",
+        "layout": "nerf_synthetic (transforms_train/test.json with camera_model PINHOLE and fl_x, no camera_angle_x, "
+                  "no ply_file_path)",
+        "background": "sky colour, alpha 255",
+        "points": {"count": 0, "on": "none"},
+        "cameras": source_meta["cameras"],
+        "train_views": len(meta["train_filenames"]), "test_views": len(meta["test_filenames"]),
+        "settings": _settings(args),
     }
 
 
@@ -593,6 +695,10 @@ def main() -> None:
     if "exposure" in todo and "outdoor" not in todo and not _reusable(outdoor, args):
         print("exposure re-exposes the outdoor renders: making outdoor first", flush=True)
         todo.insert(0, "outdoor")
+    open_points = os.path.join(args.out, "open_points")
+    if "open_nopoints" in todo and "open_points" not in todo and not _reusable(open_points, args):
+        print("open_nopoints copies the open_points renders: making open_points first", flush=True)
+        todo.insert(todo.index("open_nopoints"), "open_points")
     for name in todo:
         folder = os.path.join(args.out, name)
         print(f"{name}: ...", flush=True)
@@ -605,6 +711,10 @@ def main() -> None:
             meta = make_exposure(capture, outdoor, folder, args)
         elif name == "object_rgba":
             meta = capture_object(bpy, capture, folder, args)
+        elif name == "open_points":
+            meta = capture_open(bpy, capture, folder, args)
+        elif name == "open_nopoints":
+            meta = make_open_nopoints(open_points, folder, args)
         else:
             meta = capture_synthetic(bpy, capture, folder, args)
         seconds[name] = time.perf_counter() - t0

@@ -124,7 +124,11 @@ def load_nerf_synthetic(path, factor=1, *, val_in_train: bool = False, **dataset
     path: the scene folder holding ``transforms_train.json`` and optionally
         ``transforms_val.json`` and ``transforms_test.json`` (or one of them).
     Each file's ``camera_angle_x`` gives ``fx = fy = 0.5 W / tan(0.5 camera_angle_x)``
-    with the principal point at the image centre; ``file_path`` is relative to
+    with the principal point at the image centre, unless the file (or a frame)
+    has nerfstudio intrinsics (``fl_x``, ``camera_model``, ``cx``, ...: what
+    Blender's NeRF exporters and capture apps write), which then decide the
+    camera as in :func:`load_nerfstudio` (``camera_model`` defaults to
+    ``PINHOLE`` here); ``file_path`` is relative to
     the folder, ``.png`` is appended when it has no extension.
     Splits are the files' own: ``train``, ``val`` and ``test``
     (``val_in_train=True`` adds the val frames to ``train``).
@@ -153,9 +157,14 @@ def load_nerf_synthetic(path, factor=1, *, val_in_train: bool = False, **dataset
         if split == "train":
             points, colors = _initial_points(meta, root, jpath)
         entries = _frames(meta, jpath)
-        angle = _number(meta, "camera_angle_x", str(jpath), required=True)
-        if not 0.0 < angle < math.pi:
-            raise DatasetError(f"{jpath}: camera_angle_x must be in (0, pi) radians, got {angle!r}")
+        # Blender's NeRF exporters and capture apps write nerfstudio intrinsics (fl_x, camera_model, ...)
+        # in these files, with or without camera_angle_x: those, when present, decide the camera.
+        explicit = any(k in meta for k in ("fl_x", "camera_model")) or any(
+            k in fr for fr in entries for k in ("fl_x", "camera_model"))
+        if not explicit:
+            angle = _number(meta, "camera_angle_x", str(jpath), required=True)
+            if not 0.0 < angle < math.pi:
+                raise DatasetError(f"{jpath}: camera_angle_x must be in (0, pi) radians, got {angle!r}")
         idx = []
         for j, fr in enumerate(entries):
             where = f"{jpath}: frames[{j}] ({fr['file_path']})"
@@ -165,11 +174,16 @@ def load_nerf_synthetic(path, factor=1, *, val_in_train: bool = False, **dataset
             if not p.is_file():
                 raise DatasetError(f"{p}: image not found (listed in {jpath}, frames[{j}])")
             w, h = image_size(p)
-            fx = 0.5 * w / math.tan(0.5 * angle)
-            try:
-                cam = Camera.from_opengl_c2w(_pose(fr["transform_matrix"], where), w, h, fx)
-            except ValueError as exc:
-                raise DatasetError(f"{where}: {exc}") from None
+            if explicit:
+                merged = {"camera_model": "PINHOLE", **{k: meta[k] for k in _INTRINSIC_KEYS if k in meta},
+                          **{k: fr[k] for k in _INTRINSIC_KEYS if k in fr}}
+                cam = _nerfstudio_camera(merged, _pose(fr["transform_matrix"], where), (w, h), where)
+            else:
+                fx = 0.5 * w / math.tan(0.5 * angle)
+                try:
+                    cam = Camera.from_opengl_c2w(_pose(fr["transform_matrix"], where), w, h, fx)
+                except ValueError as exc:
+                    raise DatasetError(f"{where}: {exc}") from None
             image_path, cam = resolve_image(p, cam, f, size=(w, h))
             idx.append(len(frames))
             frames.append(Frame(cam, image_path, _rel(root, p)))
