@@ -473,6 +473,28 @@ def test_nerf_synthetic_cameras_flip_opengl(tmp_path):
     assert ds[0].name == "train/r_0.png" and ds[0].image_path.name == "r_0.png"
 
 
+def test_nerf_synthetic_files_with_nerfstudio_intrinsics(tmp_path):
+    """Blender's NeRF exporters and capture apps write fl_x/camera_model (with or without camera_angle_x):
+    those decide the camera; a frame's own values override the file's."""
+    poses = make_nerf_synthetic(tmp_path, n=(2, 0, 1), rgba=False)
+    for split, extra in (("train", {"camera_model": "PINHOLE", "fl_x": 40.0, "fl_y": 42.0, "cx": 7.5, "cy": 5.0}),
+                         ("test", {"camera_angle_x": 0.9, "fl_x": 30.0})):
+        path = tmp_path / f"transforms_{split}.json"
+        meta = json.loads(path.read_text())
+        meta.pop("camera_angle_x")
+        meta.update(extra)
+        if split == "train":
+            meta["frames"][1]["fl_x"] = 50.0
+        path.write_text(json.dumps(meta))
+    ds = load_nerf_synthetic(tmp_path)
+    cams = [fr.camera for fr in ds]
+    assert [(c.fx, c.fy, c.cx, c.cy, c.model) for c in cams] == [
+        (40.0, 42.0, 7.5, 5.0, "pinhole"), (50.0, 42.0, 7.5, 5.0, "pinhole"), (30.0, 30.0, W / 2, H / 2, "pinhole")]
+    p = (0.1, -0.2, 0.3)
+    np.testing.assert_allclose(cams[0].project_points(np.array(p))[0], gl_pixel(poses["train"][0], 40.0, 42.0, 7.5, 5.0, p),
+                               atol=1e-9)
+
+
 def test_nerf_synthetic_named_splits(tmp_path):
     make_nerf_synthetic(tmp_path, n=(3, 2, 2))
     ds = load_nerf_synthetic(tmp_path)
