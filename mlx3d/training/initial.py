@@ -178,20 +178,34 @@ def _seen_colours(images, points):
 
 
 SWEEP_MIN_POINTS = 1000  # fewer photo-consistent points than this: start from the random cube instead
+SWEEP_SIZE = 256  # the sweep looks at the photos at most this many pixels across
+SWEEP_RAYS = 150_000  # rays in all (2,048 per view up to 73 views, then fewer; at least 256 per view)
 
 
 def swept_points(dataset, cameras, config, seed: int):
     """Photo-consistent initial points of opaque photos (``plane_sweep.sweep_points``), at most
     ``init_random_points`` of them, swept from 0.1 x the cameras' median distance to what they look
-    at out to the backdrop's radius. Returns (points, colours uint8, note), or None when fewer than
+    at out to the backdrop's radius, on the photos at most ``SWEEP_SIZE`` pixels across and along
+    about ``SWEEP_RAYS`` rays. Returns (points, colours uint8, note), or None when fewer than
     ``SWEEP_MIN_POINTS`` are found (a textureless scene)."""
     from .plane_sweep import sweep_points
+
+    from ..datasets.base import resize_image
 
     centre = look_at_centre(cameras)
     distance = float(np.median([np.linalg.norm(c.center - centre) for c in cameras]))
     far = config.init_background_radius * dataset.scene_extent()
-    images = [dataset.load_image(i, background="black")[0] for i in dataset.train]
-    found = sweep_points(cameras, images, near=0.1 * distance, far=far, seed=seed)
+    small, images = [], []
+    for i, camera in zip(dataset.train, cameras):  # at most SWEEP_SIZE pixels across: memory and time stay bounded
+        factor = min(1.0, SWEEP_SIZE / max(camera.width, camera.height))
+        image = dataset.load_image(i, background="black")[0]
+        if factor < 1.0:
+            camera = camera.scaled(factor)
+            image = resize_image(image, None, (camera.width, camera.height), "box")[0]
+        small.append(camera)
+        images.append(image)
+    rays = max(256, min(2048, SWEEP_RAYS // len(cameras)))
+    found = sweep_points(small, images, near=0.1 * distance, far=far, rays_per_view=rays, seed=seed)
     if len(found.points) < SWEEP_MIN_POINTS:
         return None
     points, colours = found.points, found.colours
