@@ -390,8 +390,9 @@ def _add_cameras(bpy, scene, poses, lens):
     bpy.context.view_layer.update()
 
 
-def _ring_and_held_out(capture, centre, distance, elevations, held_out):
-    poses = capture.orbit_poses(centre, distance, RING_VIEWS, elevations)
+def _ring_and_held_out(capture, centre, distance, elevations, held_out, views=RING_VIEWS):
+    """``views`` poses on rings at ``elevations`` (split evenly), then the held-out ones."""
+    poses = capture.orbit_poses(centre, distance, views, elevations)
     poses += [_view(capture, centre, distance * scale, e, a) for e, scale, a in held_out]
     return poses
 
@@ -485,8 +486,7 @@ def _camera_notes(centre, lens, distance, rings, held_out, views=RING_VIEWS):
 
 def capture_open(bpy, capture, folder, args):
     scene, objects, centre = build_open(bpy)
-    poses = capture.orbit_poses(centre, OPEN_DISTANCE, OPEN_VIEWS, OPEN_RINGS)
-    poses += [_view(capture, centre, OPEN_DISTANCE * scale, e, a) for e, scale, a in OPEN_HELD_OUT]
+    poses = _ring_and_held_out(capture, centre, OPEN_DISTANCE, OPEN_RINGS, OPEN_HELD_OUT, OPEN_VIEWS)
     _add_cameras(bpy, scene, poses, OPEN_LENS)
     held_out = list(range(OPEN_VIEWS, len(poses)))
     info = _capture(capture, folder, "open_points", objects=objects, use_scene_cameras=True, resolution=(args.size, args.size),
