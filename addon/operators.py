@@ -472,11 +472,12 @@ class MLX3D_OT_train(_ModalWork, bpy.types.Operator):
             folder = settings.capture_dir if settings is not None else ""
         if not folder:
             raise train.TrainError("choose a dataset folder (or capture one with Capture Dataset)")
-        return train.TrainSession(
-            bpy.path.abspath(folder), method=self.method, steps=self.steps, max_gaussians=self.max_gaussians or None,
-            sh_degree=self.sh_degree, background=self.background, update_every=self.update_every,
-            collection=context.collection,
-        )
+        with _Progress(context) as progress:  # the initial model's plane sweep can take half a minute
+            return train.TrainSession(
+                bpy.path.abspath(folder), method=self.method, steps=self.steps, max_gaussians=self.max_gaussians or None,
+                sh_degree=self.sh_degree, background=self.background, update_every=self.update_every,
+                collection=context.collection, start_progress=progress,
+            )
 
 
     def _report_end(self, context, obj, messages, error):

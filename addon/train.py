@@ -131,11 +131,12 @@ class TrainSession:
 
     The constructor loads the dataset and builds the model and trainer without
     touching the scene; bad input raises ``TrainError`` or the dataset's
-    ``DatasetError`` (both ``ValueError``), naming the file.
+    ``DatasetError`` (both ``ValueError``), naming the file. ``start_progress(done,
+    total)`` follows the initial model's plane sweep (opaque photos without points).
     """
 
     def __init__(self, data, *, steps, method="vanilla", max_gaussians=None, sh_degree=3, background="black",
-                 update_every=100, name=DEFAULT_NAME, seed=0, collection=None, **trainer_overrides):
+                 update_every=100, name=DEFAULT_NAME, seed=0, collection=None, start_progress=None, **trainer_overrides):
         if method not in METHODS:
             raise TrainError(f"method {method!r} is not available; choose one of {', '.join(METHODS)}")
         steps = _positive_int(steps, "steps")
@@ -176,7 +177,7 @@ class TrainSession:
             raise TrainError(f"bad trainer setting ({exc}); TrainerConfig fields are: {known}") from None
         except ValueError as exc:
             raise TrainError(f"bad trainer setting: {exc}") from None
-        start = initial_state(dataset, config, sh_degree=sh_degree)
+        start = initial_state(dataset, config, sh_degree=sh_degree, progress=start_progress)
 
         self.dataset = dataset
         self.where = where

@@ -270,7 +270,7 @@ def cmd_train(args) -> None:
         print(f"resumed at step {trainer.step_count} from {args.resume}")
     else:
         with step("building the initial model"):
-            start = initial_state(dataset, config, sh_degree=args.sh_degree)
+            start = initial_state(dataset, config, sh_degree=args.sh_degree, progress=ProgressLine("plane sweep"))
         for note in start.notes:
             print(note)
         trainer = GaussianTrainer(start.model, start.config, scene_extent=dataset.scene_extent())

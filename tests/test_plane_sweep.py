@@ -86,3 +86,10 @@ def test_initial_state_starts_opaque_photos_from_the_sweep_and_plain_ones_from_t
     plain = PhotoDataset(cameras, [photo(c, textured=False) for c in cameras])
     start = initial_state(plain, TrainerConfig(init_random_points=3000, seed=0))
     assert any("3,000 random points" in note for note in start.notes), start.notes
+
+
+def test_progress_is_reported_per_view():
+    cameras = ring(n=6, size=32)
+    calls = []
+    sweep_points(cameras, [photo(c) for c in cameras], near=0.4, far=60.0, rays_per_view=64, progress=lambda d, t: calls.append((d, t)))
+    assert calls == [(k, 6) for k in range(1, 7)]

@@ -182,7 +182,7 @@ SWEEP_SIZE = 256  # the sweep looks at the photos at most this many pixels acros
 SWEEP_RAYS = 150_000  # rays in all (2,048 per view up to 73 views, then fewer; at least 256 per view)
 
 
-def swept_points(dataset, cameras, config, seed: int):
+def swept_points(dataset, cameras, config, seed: int, progress=None):
     """Photo-consistent initial points of opaque photos (``plane_sweep.sweep_points``), at most
     ``init_random_points`` of them, swept from 0.1 x the cameras' median distance to what they look
     at out to the backdrop's radius, on the photos at most ``SWEEP_SIZE`` pixels across and along
@@ -205,7 +205,7 @@ def swept_points(dataset, cameras, config, seed: int):
         small.append(camera)
         images.append(image)
     rays = max(256, min(2048, SWEEP_RAYS // len(cameras)))
-    found = sweep_points(small, images, near=0.1 * distance, far=far, rays_per_view=rays, seed=seed)
+    found = sweep_points(small, images, near=0.1 * distance, far=far, rays_per_view=rays, seed=seed, progress=progress)
     if len(found.points) < SWEEP_MIN_POINTS:
         return None
     points, colours = found.points, found.colours
@@ -223,11 +223,13 @@ def image_pixels(dataset) -> int:
     return int(np.median(sizes))
 
 
-def initial_state(dataset, config, sh_degree: int = 3) -> InitialState:
+def initial_state(dataset, config, sh_degree: int = 3, progress=None) -> InitialState:
     """The model a run on ``dataset`` with ``config`` starts from (see the module docstring).
 
     dataset: an ``mlx3d.datasets.Dataset`` with training views; config: a
-    ``TrainerConfig``; sh_degree: the model's SH degree (0..3)."""
+    ``TrainerConfig``; sh_degree: the model's SH degree (0..3); progress(done,
+    total): called per view while the plane sweep runs (opaque photos without
+    points), its longest part."""
     where = str(dataset.root) if dataset.root is not None else "the dataset"
     train = list(dataset.train)
     if not train:
@@ -242,7 +244,7 @@ def initial_state(dataset, config, sh_degree: int = 3) -> InitialState:
     else:
         if points is not None and len(points):
             notes.append(f"the dataset's {len(points)} point is too few to start from")
-        swept = swept_points(dataset, cameras, config, seed) if opaque else None
+        swept = swept_points(dataset, cameras, config, seed, progress) if opaque else None
         if swept is not None:
             points, colours, note = swept
             notes.append(note)

@@ -93,6 +93,7 @@ def sweep_points(
     margin: float = 0.03,
     window: int = 3,
     seed: int = 0,
+    progress=None,
 ) -> SweepResult:
     """Photo-consistent points of posed opaque photos (see the module docstring).
 
@@ -103,7 +104,8 @@ def sweep_points(
     max_cost: the largest accepted median colour difference (mean absolute
     difference over RGB, in [0, 1]); margin, window: every depth more than
     ``window`` samples from the best must cost at least ``margin`` more (the
-    best depth is unique). Deterministic for a ``seed``.
+    best depth is unique). Deterministic for a ``seed``. progress(done, total)
+    is called after each reference view.
     """
     if not (0 < near < far and math.isfinite(far)):
         raise ValueError(f"sweep depth range must satisfy 0 < near < far < inf, got {near}, {far}")
@@ -145,6 +147,8 @@ def sweep_points(
             idx = np.flatnonzero(keep)
             found_p.append(pts.reshape(n, depths, 3)[idx, best[idx]])
             found_c.append(ref[idx])
+        if progress is not None:
+            progress(r + 1, len(cameras))
     points = np.concatenate(found_p) if found_p else np.zeros((0, 3))
     colours = np.concatenate(found_c) if found_c else np.zeros((0, 3))
     return SweepResult(points.astype(np.float32), np.clip(np.round(colours * 255.0), 0, 255).astype(np.uint8),
