@@ -165,8 +165,9 @@ def cmd_convert(args) -> None:
 
     with step(f"reading {args.input}"):
         splats = read_splats(args.input, sh_degree=args.sh_degree, nonfinite=args.nonfinite)
+    options = {name: value for name, value in (("version", args.spz_version), ("level", args.ksplat_level)) if value is not None}
     with step(f"writing {args.output}"):
-        fmt = write_splats(args.output, splats)
+        fmt = write_splats(args.output, splats, **options)
     size_in, size_out = os.path.getsize(args.input), os.path.getsize(args.output)
     print(f"convert: {splats.count:,} splats, SH degree {splats.sh_degree}, {size_in / 1e6:.2f} MB -> "
           f"{args.output} ({fmt.description}, {size_out / 1e6:.2f} MB)")
@@ -406,6 +407,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("input", metavar="IN")
     p.add_argument("output", metavar="OUT")
     p.add_argument("--sh-degree", type=int, default=None, choices=(0, 1, 2, 3), metavar="D", help="write SH degree D (cut, or padded with zeros)")
+    p.add_argument("--spz-version", type=int, default=None, choices=(2, 3, 4), help="SPZ output: the version to write (default 4)")
+    p.add_argument("--ksplat-level", type=int, default=None, choices=(0, 1, 2), help=".ksplat output: compression level (default 0, float32)")
     reading(p)
 
     p = add("compact", cmd_compact, "Keep the most important splats and/or truncate SH (importance = opacity * max scale^2).")

@@ -190,3 +190,17 @@ def test_what_a_format_cannot_store_is_said_in_one_line(tmp_path, capsys):
     assert main(["convert", str(tmp_path / "b.ply"), str(tmp_path / "c.spz")]) == 0
     err = capsys.readouterr().err
     assert "mlx3d convert: warning:" in err and "confidence" in err and "c.spz" in err
+
+
+def test_convert_passes_a_formats_own_options(tmp_path, capsys):
+    from mlx3d.io import read_splats
+
+    make_file(tmp_path / "a.ply", n=40)
+    assert main(["convert", str(tmp_path / "a.ply"), str(tmp_path / "v3.spz"), "--spz-version", "3"]) == 0
+    assert (tmp_path / "v3.spz").read_bytes()[:2] == b"\x1f\x8b"  # versions 2-3 are one gzip stream
+    assert main(["convert", str(tmp_path / "a.ply"), str(tmp_path / "l1.ksplat"), "--ksplat-level", "1"]) == 0
+    assert read_splats(tmp_path / "l1.ksplat").count == 40
+    capsys.readouterr()
+    assert main(["convert", str(tmp_path / "a.ply"), str(tmp_path / "b.sog"), "--spz-version", "3"]) == 1
+    err = capsys.readouterr().err
+    assert "b.sog" in err and "no writing option 'version'" in err and not (tmp_path / "b.sog").exists()

@@ -93,3 +93,14 @@ def test_dropping_sh_and_extras_is_said(tmp_path):
     with pytest.warns(UserWarning, match="confidence"):
         write_splats(tmp_path / "a.splat", src)
     assert read_splats(tmp_path / "a.splat", sh_degree=2).sh_rest.shape == (src.count, 8, 3)
+
+
+def test_a_formats_own_writing_options_and_a_wrong_one(tmp_path):
+    from mlx3d.io import format_for_path
+
+    assert format_for_path("x.spz").options() == ("version",) and format_for_path("x.splat").options() == ()
+    write_splats(tmp_path / "v2.spz", real_splats(1), version=2)
+    assert read_splats(tmp_path / "v2.spz").count == 500
+    with pytest.raises(ValueError, match=r"a\.splat.*no writing option 'version'.*takes none"):
+        write_splats(tmp_path / "a.splat", real_splats(), version=3)
+    assert not (tmp_path / "a.splat").exists()

@@ -29,6 +29,7 @@ the CLI and the Blender add-on list.
 from __future__ import annotations
 
 import importlib
+import inspect
 import os
 import warnings
 from dataclasses import dataclass
@@ -79,11 +80,27 @@ class SplatFormat:
         """Read ``path`` with this format's codec."""
         return self._function(self.reader)(path)
 
-    def write(self, path: str, splats: SplatArrays, *, fsync: bool = True) -> None:
-        """Write ``splats`` to ``path`` with this format's codec."""
+    def options(self) -> tuple[str, ...]:
+        """The keyword options of this format's writer besides ``fsync`` (e.g. SPZ's ``version``)."""
+        if self.writer is None:
+            return ()
+        params = inspect.signature(self._function(self.writer)).parameters.values()
+        return tuple(p.name for p in params if p.kind is p.KEYWORD_ONLY and p.name != "fsync")
+
+    def write(self, path: str, splats: SplatArrays, *, fsync: bool = True, **options) -> None:
+        """Write ``splats`` to ``path`` with this format's codec and its writer's ``options``."""
         if self.writer is None:
             raise SplatFormatError(f"{path}: {self.description} files can be read but not written")
-        self._function(self.writer)(path, splats, fsync=fsync)
+        self.check_options(path, options)
+        self._function(self.writer)(path, splats, fsync=fsync, **options)
+
+    def check_options(self, path: str, options: dict) -> None:
+        """Raise ``ValueError`` naming any of ``options`` this format's writer does not take."""
+        unknown = sorted(set(options) - set(self.options()))
+        if unknown:
+            raise ValueError(
+                f"{path}: {self.description} has no writing option {', '.join(map(repr, unknown))}"
+                + (f"; its options are {', '.join(self.options())}" if self.options() else "; it takes none"))
 
     def sniff(self, head: bytes, path: str) -> bool:
         """Whether ``head`` (the first bytes of ``path``) is this format."""
@@ -285,6 +302,7 @@ def write_splats(
     format: str | None = None,
     sh_degree: int | None = None,
     fsync: bool = True,
+    **options,
 ) -> SplatFormat:
     """Write ``splats`` in the format the extension of ``path`` names, atomically.
 
@@ -296,6 +314,9 @@ def write_splats(
         format: a name from :data:`FORMATS`, overriding the extension.
         sh_degree: write this SH degree (cut or zero-padded); ``None`` keeps it.
         fsync: flush the file to disk before renaming it into place.
+        options: the format's own writing options (``SplatFormat.options``:
+            SPZ ``version``, ``.ksplat`` ``level``, ...); one the format does
+            not have raises ``ValueError`` before anything is written.
 
     Returns the :class:`SplatFormat` written.  Quantising formats refuse
     NaN/Inf (:class:`~mlx3d.errors.NonFiniteError` naming the field) and warn
@@ -312,8 +333,9 @@ def write_splats(
             f"{path}: {fmt.description} stores SH up to degree {fmt.max_sh_degree}; "
             f"degree {splats.sh_degree} is cut to {fmt.max_sh_degree}", UserWarning, stacklevel=2)
         splats = with_sh_degree(splats, fmt.max_sh_degree)
+    fmt.check_options(path, options)
     if fmt.name == "ply":
-        write_splat_ply(path, splats, fsync=fsync)
+        write_splat_ply(path, splats, fsync=fsync, **options)
         return fmt
     arrays = _validated(splats)
     if not fmt.exact:
@@ -331,6 +353,6 @@ def write_splats(
     clean = SplatArrays(
         **{k: arrays[k] for k in _STANDARD}, extra=arrays["extra"] if fmt.exact else {},
         comments=list(splats.comments))
-    fmt.write(path, clean, fsync=fsync)
+    fmt.write(path, clean, fsync=fsync, **options)
     return fmt
 
