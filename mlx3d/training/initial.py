@@ -108,13 +108,18 @@ def look_at_centre(cameras) -> np.ndarray:
     return np.linalg.solve(a + ridge * np.eye(3), b + ridge * centres.mean(axis=0))
 
 
+def _look_at_and_distance(cameras) -> tuple[np.ndarray, float]:
+    """(what the cameras look at (3,), their median distance from it)."""
+    centre = look_at_centre(cameras)
+    return centre, float(np.median([np.linalg.norm(c.center - centre) for c in cameras]))
+
+
 def random_cube(cameras, count: int, extent: float | None = None, seed: int = 0):
     """``count`` points uniformly in the cube the cameras look at, random colours.
 
     Returns (points (count, 3) float32, colours (count, 3) uint8, centre (3,), half-side)."""
-    centre = look_at_centre(cameras)
+    centre, distance = _look_at_and_distance(cameras)
     if extent is None:
-        distance = float(np.median([np.linalg.norm(c.center - centre) for c in cameras]))
         half_fov = min(min(c.fov_x, c.fov_y) for c in cameras) / 2.0
         extent = distance * math.tan(min(half_fov, math.radians(60.0)))
     if not extent > 0:
@@ -192,8 +197,7 @@ def swept_points(dataset, cameras, config, seed: int, progress=None):
 
     from ..datasets.base import resize_image
 
-    centre = look_at_centre(cameras)
-    distance = float(np.median([np.linalg.norm(c.center - centre) for c in cameras]))
+    _, distance = _look_at_and_distance(cameras)
     far = config.init_background_radius * dataset.scene_extent()
     small, images = [], []
     for i, camera in zip(dataset.train, cameras):  # at most SWEEP_SIZE pixels across: memory and time stay bounded
