@@ -20,6 +20,7 @@ import numpy as np
 
 from .errors import Mlx3dError
 from .io.ply import NORMAL_NAMES
+from .io.codec import sigmoid
 from .io.formats import FORMATS, format_for_path
 from .progress import ProgressLine, step
 
@@ -28,10 +29,6 @@ FORMAT_HELP = " ".join(ext for f in FORMATS if f.writer for ext in f.extensions 
 
 #: Commands whose splat output is checked (extension, directory) before any work.
 _OUTPUTS = {"convert": "output", "compact": "output", "clean": "output", "transform": "output", "merge": "output", "train": "out"}
-
-
-def _sigmoid(x: np.ndarray) -> np.ndarray:
-    return 1.0 / (1.0 + np.exp(-x.astype(np.float64)))
 
 
 def _stats(values: np.ndarray) -> dict:
@@ -60,7 +57,7 @@ def splat_summary(path: str) -> dict:
         "sh_degree": arrays.sh_degree,
         "bounds_min": lo,
         "bounds_max": hi,
-        "opacity": _stats(_sigmoid(arrays.opacities)),
+        "opacity": _stats(sigmoid(arrays.opacities)),
         "scale_max_axis": _stats(np.exp(arrays.scales.max(axis=1).astype(np.float64))),
         "normals": all(name in arrays.extra for name in NORMAL_NAMES),
         "extra": {name: str(values.dtype) for name, values in arrays.extra.items() if name not in NORMAL_NAMES},
