@@ -218,16 +218,15 @@ class TrainProgress:
     """Progress line for training: step, loss, PSNR, Gaussians, steps/s, ETA (about every 2%)."""
 
     def __init__(self, stream=None):
+        import time
+
         self.stream = stream if stream is not None else sys.stderr
-        self.start = None
-        self.last_print = -1
+        self.start = time.perf_counter()  # made just before the first step
 
     def __call__(self, done: int, total: int, info: dict) -> None:
         import time
 
         now = time.perf_counter()
-        if self.start is None:
-            self.start = now
         every = max(total // 50, 1)
         if done % every and done != total:
             return
@@ -241,13 +240,45 @@ class TrainProgress:
         )
 
 
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
 def _background_arg(text: str):
     from .training.evaluate import BACKGROUNDS
 
     return text if text == "random" else BACKGROUNDS[text]
 
 
+def _ranks(args):
+    """The ranks of a distributed run (``--distributed``, or started by mlx.launch or mpirun), or None."""
+    from .training.distributed import init, launched
+
+    if not (args.distributed or launched()):
+        return None
+    ranks = init(args.backend)
+    return ranks if ranks.size > 1 else None
+
+
 def cmd_train(args) -> None:
+    import contextlib
+
+    ranks = _ranks(args)
+    if ranks is not None and ranks.rank != 0:  # rank 0 alone reports; errors still reach stderr (main prints them)
+        with open(os.devnull, "w") as quiet, contextlib.redirect_stdout(quiet), contextlib.redirect_stderr(quiet):
+            _train(args, ranks)
+        return
+    if ranks is not None:
+        print(f"training on {ranks.size} ranks, {args.batch_size} views per step")
+    _train(args, ranks)
+
+
+def _train(args, ranks) -> None:
+    import signal
+
     from .datasets import load_dataset
     from .training import GaussianTrainer, TrainerConfig
     from .training.evaluate import evaluate
@@ -261,25 +292,49 @@ def cmd_train(args) -> None:
         method=args.method, steps=args.steps, max_gaussians=args.max_gaussians, background=args.background,
         seed=args.seed, checkpoint_every=args.checkpoint_every, checkpoint_dir=out_dir, bilateral_grid=args.bilateral_grid,
         init_random_points=args.random_points, init_background_points=args.background_points,
-        opaque_background=None if args.opaque_background == "same" else args.opaque_background,
+        opaque_background=None if args.opaque_background == "same" else args.opaque_background, batch_size=args.batch_size,
     )
+    if args.steps_scaler != 1.0:
+        config = config.scale_steps(args.steps_scaler)
+        print(f"steps scaled by {args.steps_scaler:g}: {config.steps:,} steps")
+    if ranks is not None and args.batch_size < ranks.size:
+        raise ValueError(f"--batch-size {args.batch_size} is smaller than the {ranks.size} ranks: each rank renders at least one view per step")
+    writer = ranks is None or ranks.rank == 0
     if args.resume:
-        trainer = GaussianTrainer.load_checkpoint(args.resume, config)
+        trainer = GaussianTrainer.load_checkpoint(args.resume, config, ranks=ranks)
         print(f"resumed at step {trainer.step_count} from {args.resume}")
     else:
         with step("building the initial model"):
             start = initial_state(dataset, config, sh_degree=args.sh_degree, progress=ProgressLine("plane sweep"))
         for note in start.notes:
             print(note)
-        trainer = GaussianTrainer(start.model, start.config, scene_extent=dataset.scene_extent())
-    remaining = max(args.steps - trainer.step_count, 0)
+        model = start.model
+        if ranks is not None:  # every rank starts from rank 0's model
+            from .splatting import GaussianModel
+
+            model = GaussianModel(ranks.broadcast(model.params, "the initial model"))
+        trainer = GaussianTrainer(model, start.config, scene_extent=dataset.scene_extent(), ranks=ranks)
+    remaining = max(trainer.config.steps - trainer.step_count, 0)
+    interrupted = []
+    previous = None
+    if ranks is not None:  # Ctrl+C: every rank stops after the same step (see fit), then rank 0 saves
+        previous = signal.signal(signal.SIGINT, lambda *_: interrupted.append(True))
     try:
-        trainer.fit(dataset, steps=remaining, progress=TrainProgress())
+        trainer.fit(dataset, steps=remaining, progress=TrainProgress() if writer else None,
+                    should_stop=(lambda: bool(interrupted)) if ranks is not None else None)
+        if interrupted:
+            raise KeyboardInterrupt
     except KeyboardInterrupt:
-        trainer.model.save(args.out)
+        if writer:
+            trainer.model.save(args.out)
         trainer.save_checkpoint(os.path.join(out_dir, "checkpoint.npz"))
         print(f"cancelled at step {trainer.step_count}: saved {args.out} and a checkpoint to resume from", file=sys.stderr)
         raise
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGINT, previous)
+    if not writer:
+        return
     _save(trainer.model, args.out)
     if args.eval and dataset.test:
         background = (0.0, 0.0, 0.0) if args.background == "random" else _background_arg(args.background)
@@ -468,6 +523,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a dataset without points starts from N random points in a cube around what the cameras look at (default 100000)")
     p.add_argument("--background-points", type=int, default=None, metavar="N",
                    help="N points on a far sphere seed a backdrop (default: mcmc on opaque photos only; 0: none)")
+    p.add_argument("--batch-size", type=_positive_int, default=1, metavar="N",
+                   help="views per step (default 1); the learning rates scale by sqrt(N) as in gsplat. With several ranks, "
+                        "the batch is shared between them")
+    p.add_argument("--steps-scaler", type=float, default=1.0, metavar="F",
+                   help="multiply the step counts (run length, schedules, checkpoint interval) by F, e.g. 1/N with --batch-size N")
+    p.add_argument("--distributed", action="store_true",
+                   help="train with the other processes of an mlx.launch or mpirun job (detected when launched by them)")
+    p.add_argument("--backend", choices=("any", "ring", "jaccl", "mpi", "nccl"), default="any",
+                   help="distributed backend (default any: the one the launcher set up)")
     p.add_argument("--opaque-background", choices=("auto", "random", "black", "white", "same"), default="auto",
                    help="behind training renders when the photos are opaque (no alpha): random (a colour per step, so the "
                         "model cannot go transparent), a fixed colour, or same: --background; auto (default): random when "

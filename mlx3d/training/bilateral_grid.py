@@ -825,26 +825,35 @@ class GridAdam:
         self._catch_up(bg, np.array([i]))
         return bg.params[i]
 
-    def update(self, bg: BilateralGrid, index: int, grad: mx.array) -> None:
-        """One Adam step: ``grad (gy, gx, gg, 12)`` for grid ``index``, zero for every other grid."""
+    def update(self, bg: BilateralGrid, index, grad) -> None:
+        """One Adam step: ``grad (gy, gx, gg, 12)`` for grid ``index``, zero for every other grid.
+
+        ``index`` may also be a sequence of distinct grids, with ``grad`` their gradients stacked
+        ``(k, gy, gx, gg, 12)`` (a batch of views of different images: still one step)."""
         self._state(bg)
-        i = self._index(bg, index)
+        single = np.ndim(index) == 0
+        rows = np.array([self._index(bg, i) for i in np.atleast_1d(index)], np.intp)
+        if len(np.unique(rows)) != len(rows):
+            raise ValueError(f"grid indices must be distinct, got {rows.tolist()}")
         g = np.asarray(np.array(grad), dtype=np.float32)
-        if g.shape != self.m.shape[1:]:
-            raise ValueError(f"gradient shape {g.shape} != grid shape {self.m.shape[1:]}")
-        self._catch_up(bg, np.array([i]))
+        if single:
+            g = g[None]
+        if g.shape != (len(rows),) + self.m.shape[1:]:
+            raise ValueError(f"gradient shape {g.shape[1:] if single else g.shape} != grid shape "
+                             f"{self.m.shape[1:] if single else (len(rows),) + self.m.shape[1:]}")
+        self._catch_up(bg, rows)
         self.step_count += 1
         c1 = 1.0 - self.b1**self.step_count
         c2 = 1.0 - self.b2**self.step_count
         # The float32 arithmetic of mlx3d.training.adam.Adam.update, in its order.
-        m = self.b1 * self.m[i] + (1 - self.b1) * g
-        v = self.b2 * self.v[i] + (1 - self.b2) * g * g
-        self.m[i], self.v[i] = m, v
-        p = np.array(bg.params[i])
+        m = self.b1 * self.m[rows] + (1 - self.b1) * g
+        v = self.b2 * self.v[rows] + (1 - self.b2) * g * g
+        self.m[rows], self.v[rows] = m, v
+        p = np.array(bg.params[mx.array(rows)])
         lr = self.lr if self.schedule is None else float(self._lrs(np.array([self.step_count]))[0])
         p = p - lr * (m / c1) / (np.sqrt(v / c2) + np.float32(self.eps))
-        self.last[i] = self.step_count
-        bg.params = _set_grids(bg.params, np.array([i]), p[None])
+        self.last[rows] = self.step_count
+        bg.params = _set_grids(bg.params, rows, p)
 
     def sync(self, bg: BilateralGrid) -> None:
         """Apply every grid's pending steps, so that ``bg.params`` is what step-by-step Adam would hold."""

@@ -12,6 +12,10 @@ device, into float32 sums that are folded into the float64 arrays when they
 are read, so a training step reads nothing back to the host for them (a fold
 sums at most one densification interval of views in float32, about 1e-6 of
 relative error).
+
+With several ranks (``mlx3d.training.distributed``) each rank adds its own
+views; :meth:`ScreenStatistics.reduce` sums them over the ranks when density
+control or a checkpoint reads them.
 """
 
 from __future__ import annotations
@@ -63,6 +67,19 @@ class ScreenStatistics:
             count += c
             np.maximum(max_radii, r, out=max_radii)
         return tuple(self._host)
+
+    def reduce(self, ranks) -> tuple:
+        """The statistics of every rank's views (``ranks`` a ``training.distributed.Ranks``), on every rank.
+
+        Afterwards rank 0 holds the sums and the other ranks zeros (the maximum radii: all hold the
+        maximum), so a later reduction counts no view twice."""
+        accum, count, max_radii = self.arrays()
+        n = accum.shape[0]
+        sums = ranks.host_sum(np.concatenate([accum, count]), "the sum of the densification statistics")
+        radii = ranks.host_max(max_radii, "the maximum of the screen radii")
+        keep = ranks.rank == 0
+        self._host = [sums[:n].copy() if keep else np.zeros(n), sums[n:].copy() if keep else np.zeros(n), radii]
+        return sums[:n], sums[n:], radii
 
     def set(self, index: int, values) -> None:
         """Replaces statistic ``index`` (0 accum, 1 count, 2 max radii) after folding the pending views."""

@@ -13,6 +13,13 @@ scale clamped to ``two_d_thickness`` times the scene extent after every step
 ``mlx3d.training.geometry`` on by default. Those regularisers work with any
 method; with their weights at 0 the depth and normal channels are not
 rendered at all.
+
+``batch_size`` > 1 makes a step a batch of views: the loss is their mean,
+each view adds to the densification statistics, and the learning rates and
+Adam's constants are scaled as gsplat does for a batch of ``B`` views (see
+``batch_adam``); ``TrainerConfig.scale_steps`` scales the schedules. The
+views of a batch can be shared by several processes
+(``mlx3d.training.distributed``).
 """
 
 from __future__ import annotations
@@ -114,6 +121,9 @@ class TrainerConfig:
     geometry_min_alpha: float = 0.5  # the regularisers apply where the render's alpha reaches this
     geometry_from: int = 1000  # and from this step on
     seed: int = 0
+    # views per step, over all ranks of a distributed run; 1: one view per step (3DGS). B > 1 scales the
+    # learning rates by sqrt(B) and Adam's betas and eps with it (see batch_adam); schedules: scale_steps
+    batch_size: int = 1
     low_memory: bool = False  # clear MLX's buffer cache after densification
     cache_limit_gb: float | None = None
     checkpoint_every: int = 0  # 0: only on request
@@ -125,6 +135,8 @@ class TrainerConfig:
             raise ValueError(f"method {self.method!r} is not available; use one of {METHODS}")
         if self.steps < 1:
             raise ValueError(f"steps must be >= 1, got {self.steps}")
+        if not isinstance(self.batch_size, (int, np.integer)) or isinstance(self.batch_size, bool) or self.batch_size < 1:
+            raise ValueError(f"batch_size must be an integer >= 1, got {self.batch_size!r}")
         if self.projection not in PROJECTIONS:
             raise ValueError(f"projection must be one of {PROJECTIONS}, got {self.projection!r}")
         if self.background is None:
@@ -169,6 +181,46 @@ class TrainerConfig:
         if not self.two_d_thickness > 0:
             raise ValueError(f"two_d_thickness must be > 0, got {self.two_d_thickness}")
 
+    #: The step counts ``scale_steps`` scales: the run's length, the schedules and the checkpoint interval.
+    STEP_FIELDS = ("steps", "lr_means_max_steps", "sh_increase_every", "densify_from", "densify_until", "densify_every",
+                   "opacity_reset_every", "reset_recovery", "bilateral_grid_warmup", "geometry_from", "checkpoint_every")
+
+    def scale_steps(self, factor: float) -> "TrainerConfig":
+        """This config with every step count of ``STEP_FIELDS`` times ``factor`` (gsplat's ``steps_scaler``):
+        e.g. ``factor = 1 / batch_size`` trains on as many views, in batches, as the unscaled run one at a time.
+        Intervals stay at least 1; a count of 0 (off) stays 0."""
+        if not factor > 0:
+            raise ValueError(f"the steps scaler must be > 0, got {factor}")
+        changes = {}
+        for name in self.STEP_FIELDS:
+            value = getattr(self, name)
+            if value:
+                changes[name] = max(int(value * factor), 1) if name not in ("densify_from", "geometry_from", "reset_recovery") else int(value * factor)
+        return replace(self, **changes)
+
+
+def batch_adam(batch_size: int) -> dict:
+    """Adam's constants and the learning-rate factor for batches of ``batch_size`` views, as gsplat's trainer sets
+    them (the square-root scaling rule): lr x sqrt(B), eps 1e-15 / sqrt(B), betas (1 - B (1 - 0.9), 1 - B (1 - 0.999)).
+    From B = 10 on the first beta would be 0 or negative: it is held at 0 (no momentum)."""
+    b = int(batch_size)
+    if b == 1:
+        return {"lr_factor": 1.0, "betas": (0.9, 0.999), "eps": 1e-15}
+    root = math.sqrt(b)
+    return {"lr_factor": root, "betas": (max(1 - b * (1 - 0.9), 0.0), max(1 - b * (1 - 0.999), 0.0)), "eps": 1e-15 / root}
+
+
+@dataclass
+class TrainingView:
+    """One view of a training step: camera, target (H, W, 3) in [0, 1], weight (H, W) or None,
+    background (r, g, b) or None (the config's), image_index (the bilateral grid's image) or None."""
+
+    camera: object
+    target: object
+    weight: object = None
+    background: object = None
+    image_index: int | None = None
+
 
 def events_at(config: TrainerConfig, step: int) -> tuple:
     """Schedule events after step ``step`` (1-based): 'sh_up', and 'densify' and
@@ -199,12 +251,15 @@ class GaussianTrainer:
     non-positive extent (e.g. a single camera) is taken as 1. scene_centre:
     (3,) their mean (the dataset's ``scene_centre()``; ``fit`` takes it from
     its dataset when not given), where ``backdrop_distance`` is measured from.
+    ranks: a ``training.distributed.Ranks`` of processes training this model
+    together (each renders its share of every batch), or None.
     """
 
     def __init__(self, model: GaussianModel, config: TrainerConfig | None = None, scene_extent: float = 1.0, num_images: int | None = None,
-                 scene_centre=None):
+                 scene_centre=None, ranks=None):
         self.model = model
         self.config = config or TrainerConfig()
+        self.ranks = ranks if ranks is not None and ranks.size > 1 else None
         self.scene_extent = float(scene_extent) if scene_extent > 0 else 1.0
         self.scene_centre = None if scene_centre is None else np.asarray(scene_centre, np.float64).reshape(3)
         self.bilateral = None  # the BilateralGrid when enabled (needs num_images; fit() knows it)
@@ -215,7 +270,8 @@ class GaussianTrainer:
         self.active_sh_degree = 0
         self.rng = np.random.default_rng(self.config.seed)
         self._opaque_dataset, self._opaque = None, False  # training_background's cache
-        self.optimizer = Adam(self.learning_rates())
+        batch = batch_adam(self.config.batch_size)
+        self.optimizer = Adam(self.learning_rates(), betas=batch["betas"], eps=batch["eps"])
         self._reset_stats()
         self.opacity_resets = 0
         self.unprojector = DepthUnprojector()
@@ -230,7 +286,7 @@ class GaussianTrainer:
         self.bilateral = BilateralGrid(num_images, self.config.bilateral_grid_shape)
         warmup = self.config.bilateral_grid_warmup
         schedule = warmup_decay(self.config.steps, min(self.config.steps // 30, 1000) if warmup is None else warmup)
-        self.grid_optimizer = GridAdam(self.config.bilateral_grid_lr, schedule=schedule)  # updates only the stepped image's grid
+        self.grid_optimizer = GridAdam(self.config.bilateral_grid_lr * batch_adam(self.config.batch_size)["lr_factor"], schedule=schedule)  # updates only the stepped image's grid
 
     @property
     def max_thickness(self) -> float:
@@ -239,11 +295,11 @@ class GaussianTrainer:
 
     # ------------------------------------------------------------------ schedules
     def learning_rates(self) -> dict:
-        """Per-parameter learning rates at the current step."""
+        """Per-parameter learning rates at the current step (times sqrt(batch_size), see ``batch_adam``)."""
         c = self.config
         t = min(self.step_count / (c.lr_means_max_steps or c.steps), 1.0)
         lr_means = math.exp((1 - t) * math.log(c.lr_means) + t * math.log(c.lr_means_final)) * self.scene_extent
-        return {
+        rates = {
             "means": lr_means,
             "scales": c.lr_scales,
             "quats": c.lr_quats,
@@ -251,6 +307,8 @@ class GaussianTrainer:
             "sh_dc": c.lr_sh_dc,
             "sh_rest": c.lr_sh_rest,
         }
+        factor = batch_adam(c.batch_size)["lr_factor"]
+        return rates if factor == 1.0 else {k: v * factor for k, v in rates.items()}
 
     def _reset_stats(self):
         self.statistics = ScreenStatistics(len(self.model))
@@ -325,47 +383,76 @@ class GaussianTrainer:
         which must match how the target was composited); image_index: which
         training image this is (needed by the bilateral grid). Returns logging info.
         """
+        return self.step_batch([TrainingView(camera, target, weight, background, image_index)])
+
+    def step_batch(self, views, batch_images=None) -> dict:
+        """One optimisation step on a batch of views (``TrainingView``): the mean of their losses.
+
+        On one process ``views`` is the batch. With ``ranks`` it is this rank's share, the views at
+        ``ranks.positions(B)`` of a batch of B; ``batch_images`` (B,) lists every view's image index
+        (needed by the bilateral grid; default: ``views``' own). Returns logging info; ``loss`` and
+        ``psnr`` are means over the batch.
+        """
         c = self.config
+        views = list(views)
+        if not views:
+            raise ValueError("a training step needs at least one view")
         use_grid = self.bilateral is not None
-        if c.bilateral_grid and (not use_grid or image_index is None):
+        if c.bilateral_grid and (not use_grid or any(v.image_index is None for v in views)):
             raise ValueError("bilateral_grid needs the trainer's num_images and each step's image_index")
-        bg = self.background_colour() if background is None else tuple(background)
-        target = mx.array(target, dtype=mx.float32)
-        mask = None if weight is None else mx.array(weight, dtype=mx.float32)
-        params = self.model.params
+        ranks = self.ranks
+        batch_images = [v.image_index for v in views] if batch_images is None else list(batch_images)
+        batch = len(batch_images)
+        positions = ranks.positions(batch) if ranks is not None else list(range(batch))
+        if len(positions) != len(views):
+            raise ValueError(f"this rank renders {len(positions)} of the batch's {batch} views, got {len(views)}")
         n = len(self.model)
         degree = min(self.active_sh_degree, self.model.sh_degree)
-        plan = step_plan(c, camera, degree, self.step_count)
-        r = plan.render
-
-        def loss_fn(p, offset, grid):
-            return self._loss(p, offset, grid, camera, target, mask, bg, plan, degree, image_index if use_grid else None)
-
-        grid_in = self.grid_optimizer.current(self.bilateral, image_index) if use_grid else mx.zeros((1,))
-        # dL/d(means2d) through a zero offset, only for the densification statistics
-        statistics = "screen_statistics" in plan.after_step
-        if statistics:
-            (loss, out), (grads, grad2d, grad_grid) = mx.value_and_grad(loss_fn, argnums=(0, 1, 2))(params, mx.zeros((n, 2)), grid_in)
-            screen = [grad2d, out["visible"], out["radii"]]
-        else:
-            (loss, out), (grads, grad_grid) = mx.value_and_grad(loss_fn, argnums=(0, 2))(params, None, grid_in)
-            screen = []
         self.optimizer.lrs = self.learning_rates()
-        finite = all_finite([loss, *grads.values()] + ([grad_grid] if use_grid else []), r.backend)
-        quality = psnr(out["image"], target, mask, clip=True, backend=r.backend)
-        mx.eval(loss, grads, grad_grid, finite, quality, *screen)
+
+        loss_sum = psnr_sum = grads = None
+        grid_grads, screens, ran, extra = [], [], None, {}
+        for view in views:  # forward and backward of each view; gradients summed
+            (loss, out, g, grad_grid, screen, quality) = self._view_gradients(view, degree, n, use_grid)
+            loss_sum = loss if loss_sum is None else loss_sum + loss
+            psnr_sum = quality if psnr_sum is None else psnr_sum + quality
+            grads = g if grads is None else {k: grads[k] + g[k] for k in grads}
+            if use_grid:
+                grid_grads.append(grad_grid)
+            screens.append((view.camera, screen))
+            ran = out["ran"] if ran is None else ran
+            for key in ("depth_variance_loss", "normal_loss"):
+                if key in out:
+                    extra[key] = out[key] if key not in extra else extra[key] + out[key]
+            mx.eval(loss_sum, psnr_sum, grads, *grid_grads[-1:], *screen, *extra.values())
+            del out
+        plan = step_plan(c, views[0].camera, degree, self.step_count)
+        r = plan.render
+        if use_grid:
+            # one slot per batch position: with ranks, the other ranks' slots arrive by the sum
+            slots = dict(zip(positions, grid_grads))
+            grid_grads = [slots.get(p, mx.zeros_like(grid_grads[0])) for p in range(batch)]
+        if ranks is not None:
+            loss_sum, psnr_sum, grads, grid_grads, extra = self._sum_over_ranks(loss_sum, psnr_sum, grads, grid_grads, extra)
+        if batch > 1:
+            grads = {k: v / batch for k, v in grads.items()}
+            grid_grads = [g / batch for g in grid_grads]
+        loss = loss_sum / batch if batch > 1 else loss_sum
+        finite = all_finite([loss, *grads.values()] + grid_grads, r.backend)
+        mx.eval(loss, grads, finite, *grid_grads)
         loss_value = float(loss)
         if not bool(finite):
             raise TrainingError(f"step {self.step_count + 1}: the loss or a gradient is not finite (loss {loss_value}); parameters left at the last good step")
         # Evaluated apart from the gradients, whose graph holds the old parameters, and with nothing here
         # holding them: Adam then writes the new parameters and moments over the old ones' memory.
+        params = self.model.params
         self.model.params = self.optimizer.update(params, grads)
-        del params
+        del params, grads
         mx.eval(self.model.params, self.optimizer.m, self.optimizer.v)
 
-        ran = out["ran"] + ["adam"]
+        ran = ran + ["adam"]
         if use_grid:
-            self.grid_optimizer.update(self.bilateral, image_index, grad_grid)
+            self._update_grids(batch_images, grid_grads)
         if "thickness_clamp" in plan.after_step:
             self.model.apply_2dgs_constraints(self.max_thickness)
             ran.append("thickness_clamp")
@@ -376,14 +463,18 @@ class GaussianTrainer:
             ran.append("sgld_noise")
         self.step_count += 1
 
-        if statistics:
-            self.add_screen_statistics(camera, out["visible"], grad2d, out["radii"], r.backend)
+        if "screen_statistics" in plan.after_step:
+            for camera, (grad2d, visible, radii) in screens:
+                self.add_screen_statistics(camera, visible, grad2d, radii, r.backend)
             ran.append("screen_statistics")
+        del screens
 
-        info = {"step": self.step_count, "loss": loss_value, "psnr": float(quality)}
-        for key in ("depth_variance_loss", "normal_loss"):
-            if key in out:
-                info[key] = float(out[key])
+        info = {"step": self.step_count, "loss": loss_value, "psnr": float(psnr_sum) / batch}
+        info.update({key: float(value) / batch for key, value in extra.items()})
+        if batch > 1:
+            info["batch_size"] = batch
+        if plan.events and ranks is not None:
+            ranks.check_same(f"model state before the events of step {self.step_count}", self.state_digest())
         for event in plan.events:
             info[event] = self._apply_event(event)
             ran.append(event)
@@ -399,6 +490,63 @@ class GaussianTrainer:
         })
         return info
 
+    def _view_gradients(self, view: TrainingView, degree: int, n: int, use_grid: bool) -> tuple:
+        """Forward and backward of one view: (loss, render output, parameter gradients, grid gradient
+        or None, screen statistics inputs [grad2d, visible, radii] or [], PSNR), all lazy."""
+        c = self.config
+        camera, image_index = view.camera, view.image_index
+        bg = self.background_colour() if view.background is None else tuple(view.background)
+        target = mx.array(view.target, dtype=mx.float32)
+        mask = None if view.weight is None else mx.array(view.weight, dtype=mx.float32)
+        plan = step_plan(c, camera, degree, self.step_count)
+
+        def loss_fn(p, offset, grid):
+            return self._loss(p, offset, grid, camera, target, mask, bg, plan, degree, image_index if use_grid else None)
+
+        grid_in = self.grid_optimizer.current(self.bilateral, image_index) if use_grid else mx.zeros((1,))
+        # dL/d(means2d) through a zero offset, only for the densification statistics
+        if "screen_statistics" in plan.after_step:
+            (loss, out), (grads, grad2d, grad_grid) = mx.value_and_grad(loss_fn, argnums=(0, 1, 2))(self.model.params, mx.zeros((n, 2)), grid_in)
+            screen = [grad2d, out["visible"], out["radii"]]
+        else:
+            (loss, out), (grads, grad_grid) = mx.value_and_grad(loss_fn, argnums=(0, 2))(self.model.params, None, grid_in)
+            screen = []
+        quality = psnr(out["image"], target, mask, clip=True, backend=plan.render.backend)
+        return loss, out, grads, grad_grid if use_grid else None, screen, quality
+
+    def _sum_over_ranks(self, loss, quality, grads: dict, grid_grads: list, extra: dict) -> tuple:
+        """Every rank's sums of one step (losses, PSNRs, gradients, grid gradients per batch position) added
+        over the ranks in one all_sum of a flat float32 buffer."""
+        names = sorted(grads)
+        parts = [mx.stack([loss, quality, *extra.values()]).astype(mx.float32)] + [grads[k].reshape(-1) for k in names]
+        parts += [g.reshape(-1) for g in grid_grads]
+        total = self.ranks.sum(mx.concatenate(parts), f"the gradient sum of step {self.step_count + 1}")
+        head = 2 + len(extra)
+        sizes = [head] + [grads[k].size for k in names] + [g.size for g in grid_grads]
+        pieces = mx.split(total, np.cumsum(sizes)[:-1].tolist())
+        grads = {k: p.reshape(grads[k].shape) for k, p in zip(names, pieces[1:])}
+        grid_grads = [p.reshape(g.shape) for p, g in zip(pieces[1 + len(names):], grid_grads)]
+        sums = pieces[0]
+        return sums[0], sums[1], grads, grid_grads, dict(zip(extra, [sums[2 + i] for i in range(len(extra))]))
+
+    def _update_grids(self, batch_images: list, grid_grads: list) -> None:
+        """One grid Adam step from a batch's grid gradients (views of the same image add up)."""
+        if len(batch_images) == 1:
+            self.grid_optimizer.update(self.bilateral, batch_images[0], grid_grads[0])
+            return
+        by_image = {}
+        for index, g in zip(batch_images, grid_grads):
+            i = int(index) % self.bilateral.num_images
+            by_image[i] = g if i not in by_image else by_image[i] + g
+        self.grid_optimizer.update(self.bilateral, list(by_image), mx.stack(list(by_image.values())))
+
+    def state_digest(self) -> bytes:
+        """Bytes identifying the training state (step, SH degree, parameters, Adam's step), for comparing ranks."""
+        from .distributed import digest
+
+        return digest(self.step_count, self.active_sh_degree, self.optimizer.step_count,
+                      *(self.model.params[k] for k in sorted(self.model.params)))
+
     def add_screen_statistics(self, camera, visible, grad2d, radii, backend: str = "auto") -> None:
         """Adds one view to the density statistics: visible (N,) bool, grad2d (N,2) dL/d(means2d) in
         pixels, radii (N,). The screen-space gradient is taken in NDC units (as 3DGS's threshold expects)."""
@@ -413,9 +561,10 @@ class GaussianTrainer:
             self.model.active_sh_degree = self.active_sh_degree  # where the original mlx3D keeps it
             return self.active_sh_degree
         if event == "densify":
+            accum, count, radii = self.statistics.arrays() if self.ranks is None else self.statistics.reduce(self.ranks)
             params, counts = densify_and_prune(
-                self.model.params, self.grad_accum, self.grad_count, c.densify_grad_threshold, self.scene_extent, c.percent_dense,
-                c.prune_opacity, self.optimizer, c.max_screen_size if self.opacity_resets else None, self.max_radii,
+                self.model.params, accum, count, c.densify_grad_threshold, self.scene_extent, c.percent_dense,
+                c.prune_opacity, self.optimizer, c.max_screen_size if self.opacity_resets else None, radii,
                 c.max_gaussians, self.rng, self.scene_centre,
                 None if c.backdrop_distance is None else c.backdrop_distance * self.scene_extent,
             )
@@ -448,8 +597,11 @@ class GaussianTrainer:
     def fit(self, dataset, steps: int | None = None, progress=None, should_stop=None) -> list:
         """Train on ``dataset.train`` views in random order; returns per-step info.
 
-        progress(done, total, info) is called after every step; should_stop()
-        is polled to cancel (the model keeps the last completed step).
+        Each step draws ``batch_size`` views (with their background colours); with
+        ``ranks``, every rank draws the same ones and renders its share. progress(done,
+        total, info) is called after every step; should_stop() is polled to cancel (the
+        model keeps the last completed step; with ranks, every rank stops after the
+        same step when any rank's should_stop() says so).
         """
         steps = self.config.steps if steps is None else steps
         train = list(dataset.train)
@@ -463,21 +615,43 @@ class GaussianTrainer:
             self.config = replace(self.config, max_gaussians=mcmc_budget(len(self.model), image_pixels(dataset)))
         if self.scene_centre is None:
             self.scene_centre = dataset.scene_centre()
+        batch, ranks = self.config.batch_size, self.ranks
+        if ranks is not None:
+            if batch < ranks.size:
+                raise ValueError(f"batch_size {batch} is smaller than the {ranks.size} ranks: each rank renders at least one view of a step")
+            ranks.check_same("configuration and dataset", self._run_digest(dataset))
+            ranks.check_same("model state at the start", self.state_digest())
+        positions = ranks.positions(batch) if ranks is not None else list(range(batch))
         spec = self.training_background(dataset)
         history = []
         for i in range(steps):
-            if should_stop is not None and should_stop():
+            stop = should_stop is not None and should_stop()
+            if ranks is not None and should_stop is not None:
+                stop = bool(ranks.host_sum(np.array([float(stop)]), "the agreement to stop")[0] > 0)
+            if stop:
                 break
-            index = train[int(self.rng.integers(len(train)))]
-            colour = self.background_colour(spec)  # the target is composited on the colour the render uses
-            image, weight = dataset.load_image(index, background=colour, rng=self.rng)
-            info = self.step(dataset.frames[index].camera, image, weight, background=colour, image_index=index)
+            # the batch's views and background colours, drawn in the same order on every rank
+            drawn = [(train[int(self.rng.integers(len(train)))], self.background_colour(spec)) for _ in range(batch)]
+            views = []
+            for index, colour in (drawn[p] for p in positions):  # the target is composited on the colour the render uses
+                image, weight = dataset.load_image(index, background=colour, rng=self.rng)
+                views.append(TrainingView(dataset.frames[index].camera, image, weight, colour, index))
+            info = self.step_batch(views, [index for index, _ in drawn])
             history.append(info)
             if self.config.checkpoint_every and self.config.checkpoint_dir and self.step_count % self.config.checkpoint_every == 0:
                 self.save_checkpoint(os.path.join(self.config.checkpoint_dir, "checkpoint.npz"))
             if progress is not None:
                 progress(i + 1, steps, info)
         return history
+
+    def _run_digest(self, dataset) -> bytes:
+        """Bytes identifying the settings and the training cameras of a run (not where it writes)."""
+        from .distributed import digest
+
+        settings = {k: v for k, v in asdict(self.config).items() if k not in ("checkpoint_dir", "extra")}
+        cameras = [(f.camera.width, f.camera.height, np.asarray(f.camera.K), np.asarray(f.camera.world_to_camera_matrix))
+                   for f in (dataset.frames[i] for i in dataset.train)]
+        return digest(sorted(settings.items()), list(dataset.train), *(x for cam in cameras for x in cam))
 
     def training_background(self, dataset):
         """The background spec training steps on ``dataset`` use: ``opaque_background`` when its
@@ -490,8 +664,17 @@ class GaussianTrainer:
 
     # ------------------------------------------------------------------ checkpoints
     def save_checkpoint(self, path) -> None:
-        """Parameters, optimizer state, step, schedule and random state in one .npz (written atomically)."""
+        """Parameters, optimizer state, step, schedule and random state in one .npz (written atomically).
+
+        With ``ranks`` every rank calls it: the ranks check they agree and sum their statistics,
+        and rank 0 alone writes."""
         from ..io.atomic import atomic_write
+
+        if self.ranks is not None:
+            self.ranks.check_same(f"model state at the checkpoint of step {self.step_count}", self.state_digest())
+            self.statistics.reduce(self.ranks)  # rank 0 now holds every rank's statistics
+            if self.ranks.rank != 0:
+                return
 
         state = {f"param/{k}": np.array(v) for k, v in self.model.params.items()}
         state.update({f"adam/{k}": v for k, v in self.optimizer.state_dict().items()})
@@ -510,17 +693,20 @@ class GaussianTrainer:
             np.savez(f, **state)
 
     @classmethod
-    def load_checkpoint(cls, path, config: TrainerConfig | None = None) -> "GaussianTrainer":
-        """A trainer resuming exactly where ``save_checkpoint`` left off."""
+    def load_checkpoint(cls, path, config: TrainerConfig | None = None, ranks=None) -> "GaussianTrainer":
+        """A trainer resuming exactly where ``save_checkpoint`` left off (with ``ranks``: every rank
+        loads the file; rank 0 keeps its densification statistics, the others start theirs at zero)."""
         with np.load(path) as data:
             state = {k: data[k] for k in data.files}
         model = GaussianModel({k: mx.array(state[f"param/{k}"]) for k in PARAM_NAMES})
-        trainer = cls(model, config, float(state["scene_extent"]), scene_centre=state.get("scene_centre"))
+        trainer = cls(model, config, float(state["scene_extent"]), scene_centre=state.get("scene_centre"), ranks=ranks)
         trainer.optimizer.load_state_dict({k[5:]: v for k, v in state.items() if k.startswith("adam/")})
         trainer.step_count = int(state["step"])
         trainer.active_sh_degree = int(state["active_sh_degree"])
         trainer.opacity_resets = int(state["opacity_resets"])
         trainer.grad_accum, trainer.grad_count, trainer.max_radii = (np.array(state[k], dtype=np.float64) for k in ("grad_accum", "grad_count", "max_radii"))
+        if trainer.ranks is not None and trainer.ranks.rank != 0:  # the sums live on rank 0
+            trainer.grad_accum, trainer.grad_count = np.zeros_like(trainer.grad_accum), np.zeros_like(trainer.grad_count)
         trainer.rng.bit_generator.state = json.loads(str(state["rng_state"]))
         if "bilateral_grid" in state:
             trainer._make_grid(state["bilateral_grid"].shape[0])

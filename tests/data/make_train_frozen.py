@@ -62,15 +62,16 @@ def scene(folder: Path):
     return start, load_dataset(folder)
 
 
-def run(name: str, folder: Path, **overrides) -> dict:
-    """Parameters (numpy) after frozen run ``name`` (``overrides`` change its config), and the trainer."""
+def run(name: str, folder: Path, ranks=None, progress=None, **overrides) -> dict:
+    """Parameters (numpy) after frozen run ``name`` (``overrides`` change its config; ``ranks``: trained
+    together with other processes, see mlx3d.training.distributed; ``progress`` as ``fit``'s), and the trainer."""
     from mlx3d.splatting import GaussianModel
     from mlx3d.training import GaussianTrainer, TrainerConfig
 
     start, dataset = scene(folder)
     config = TrainerConfig(seed=3, **{**RUNS[name], **overrides})
-    trainer = GaussianTrainer(GaussianModel(dict(start.params)), config, scene_extent=dataset.scene_extent())
-    trainer.fit(dataset)
+    trainer = GaussianTrainer(GaussianModel(dict(start.params)), config, scene_extent=dataset.scene_extent(), ranks=ranks)
+    trainer.fit(dataset, progress=progress)
     return {k: np.array(v) for k, v in trainer.model.params.items()}, trainer
 
 
