@@ -278,6 +278,7 @@ def cmd_train(args) -> None:
 
 def _train(args, ranks) -> None:
     import signal
+    from dataclasses import replace
 
     from .datasets import load_dataset
     from .training import GaussianTrainer, TrainerConfig
@@ -301,6 +302,11 @@ def _train(args, ranks) -> None:
         raise ValueError(f"--batch-size {args.batch_size} is smaller than the {ranks.size} ranks: each rank renders at least one view per step")
     writer = ranks is None or ranks.rank == 0
     if args.resume:
+        # the run's own settings, with its defaults as they were resolved; the command line sets how long it runs
+        stored = GaussianTrainer.checkpoint_config(args.resume)
+        if stored is not None:
+            config = replace(stored, steps=config.steps, checkpoint_every=config.checkpoint_every, checkpoint_dir=out_dir,
+                             batch_size=config.batch_size)
         trainer = GaussianTrainer.load_checkpoint(args.resume, config, ranks=ranks)
         print(f"resumed at step {trainer.step_count} from {args.resume}")
     else:

@@ -253,6 +253,10 @@ def test_mlx3d_train_on_two_ranks_writes_what_one_process_writes(tmp_path):
     assert one.returncode == 0, one.stderr
     assert (tmp_path / "one.ply").read_bytes() == (tmp_path / "two.ply").read_bytes()
     assert GaussianTrainer.load_checkpoint(tmp_path / "checkpoint.npz").step_count == 20
+    # resumed on 2 ranks from the step-20 checkpoint: the same file as the run that went through
+    code, out = _launch(["-m", "mlx3d", *common, "--out", "resumed.ply", "--resume", "checkpoint.npz"], tmp_path)
+    assert "resumed at step 20" in out, out
+    assert (tmp_path / "resumed.ply").read_bytes() == (tmp_path / "two.ply").read_bytes()
     bad = subprocess.run([sys.executable, "-m", "mlx3d", "train", "data", "--out", "x.ply", "--distributed", "--backend", "ring"],
                          cwd=tmp_path, capture_output=True, text=True, timeout=120)
     assert bad.returncode == 1 and "cannot start MLX's distributed backend 'ring'" in bad.stderr, bad.stderr

@@ -682,6 +682,7 @@ class GaussianTrainer:
             step=np.array(self.step_count), active_sh_degree=np.array(self.active_sh_degree), opacity_resets=np.array(self.opacity_resets),
             grad_accum=self.grad_accum, grad_count=self.grad_count, max_radii=self.max_radii, scene_extent=np.array(self.scene_extent),
             rng_state=np.array(json.dumps(self.rng.bit_generator.state)),
+            config=np.array(json.dumps({k: v for k, v in asdict(self.config).items() if k != "extra"})),
         )
         if self.scene_centre is not None:
             state["scene_centre"] = self.scene_centre
@@ -692,10 +693,27 @@ class GaussianTrainer:
         with atomic_write(path) as f:
             np.savez(f, **state)
 
+    @staticmethod
+    def checkpoint_config(path) -> TrainerConfig | None:
+        """The settings a checkpoint was written with (defaults resolved, ``extra`` left out), or None for a
+        checkpoint from before they were stored."""
+        with np.load(path) as data:
+            if "config" not in data.files:
+                return None
+            stored = json.loads(str(data["config"]))
+        for name in ("background", "opaque_background", "bilateral_grid_shape"):
+            if isinstance(stored.get(name), list):
+                stored[name] = tuple(stored[name])
+        known = {f for f in TrainerConfig.__dataclass_fields__}
+        return TrainerConfig(**{k: v for k, v in stored.items() if k in known})
+
     @classmethod
     def load_checkpoint(cls, path, config: TrainerConfig | None = None, ranks=None) -> "GaussianTrainer":
         """A trainer resuming exactly where ``save_checkpoint`` left off (with ``ranks``: every rank
-        loads the file; rank 0 keeps its densification statistics, the others start theirs at zero)."""
+        loads the file; rank 0 keeps its densification statistics, the others start theirs at zero).
+        config: None for the checkpoint's own settings (``checkpoint_config``)."""
+        if config is None:
+            config = cls.checkpoint_config(path)
         with np.load(path) as data:
             state = {k: data[k] for k in data.files}
         model = GaussianModel({k: mx.array(state[f"param/{k}"]) for k in PARAM_NAMES})
