@@ -326,9 +326,9 @@ def _train(args, ranks) -> None:
     if ranks is not None:  # Ctrl+C: every rank stops after the same step (see fit), then rank 0 saves
         previous = signal.signal(signal.SIGINT, lambda *_: interrupted.append(True))
     try:
-        trainer.fit(dataset, steps=remaining, progress=TrainProgress() if writer else None,
-                    should_stop=(lambda: bool(interrupted)) if ranks is not None else None)
-        if interrupted:
+        history = trainer.fit(dataset, steps=remaining, progress=TrainProgress() if writer else None,
+                              should_stop=(lambda: bool(interrupted)) if ranks is not None else None)
+        if len(history) < remaining:  # a rank was interrupted: every rank stopped after the same step
             raise KeyboardInterrupt
     except KeyboardInterrupt:
         if writer:

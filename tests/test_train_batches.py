@@ -261,3 +261,38 @@ def test_mlx3d_train_on_two_ranks_writes_what_one_process_writes(tmp_path):
                          cwd=tmp_path, capture_output=True, text=True, timeout=120)
     assert bad.returncode == 1 and "cannot start MLX's distributed backend 'ring'" in bad.stderr, bad.stderr
     assert not (tmp_path / "x.ply").exists()
+
+
+def test_ctrl_c_stops_every_rank_after_the_same_step_and_rank_0_saves(tmp_path):
+    """SIGINT to both ranks (what Ctrl+C in a terminal sends to its foreground processes) at different moments:
+    both stop after the same step, exit with 130, and rank 0 writes the model and a checkpoint of that step."""
+    import re
+    import signal
+    import time
+
+    frozen.scene(tmp_path)
+    ports = _free_ports(2)
+    hostfile = tmp_path / "hosts.json"
+    hostfile.write_text(json.dumps([[f"127.0.0.1:{p}"] for p in ports]))
+    cmd = [sys.executable, "-m", "mlx3d", "train", ".", "--out", "cut.ply", "--batch-size", "2", "--steps", "5000", "--random-points", "300"]
+    logs = [open(tmp_path / f"log{r}.txt", "w+") for r in range(2)]
+    procs = [subprocess.Popen(cmd, cwd=tmp_path, env=dict(os.environ, MLX_RANK=str(r), MLX_HOSTFILE=str(hostfile)), stdout=logs[r],
+                              stderr=subprocess.STDOUT) for r in range(2)]
+    try:
+        deadline = time.time() + 120
+        while not re.search(r"step +\d+ \(", (tmp_path / "log0.txt").read_text()) and time.time() < deadline:  # training
+            time.sleep(0.2)
+        procs[1].send_signal(signal.SIGINT)
+        time.sleep(0.3)
+        procs[0].send_signal(signal.SIGINT)
+        codes = [p.wait(timeout=120) for p in procs]
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+    text = (tmp_path / "log0.txt").read_text()
+    assert codes == [130, 130], (codes, text[-2000:])
+    step = int(text.split("cancelled at step ")[1].split(":")[0])
+    assert 0 < step < 5000
+    assert GaussianTrainer.load_checkpoint(tmp_path / "checkpoint.npz").step_count == step
+    assert (tmp_path / "cut.ply").exists()
