@@ -390,8 +390,8 @@ class GaussianTrainer:
 
         On one process ``views`` is the batch. With ``ranks`` it is this rank's share, the views at
         ``ranks.positions(B)`` of a batch of B; ``batch_images`` (B,) lists every view's image index
-        (needed by the bilateral grid; default: ``views``' own). Returns logging info; ``loss`` and
-        ``psnr`` are means over the batch.
+        (needed by the bilateral grid; default: ``views``' own), and every rank calls this with the
+        same batch (``fit`` deals it). Returns logging info; ``loss`` and ``psnr`` are means over the batch.
         """
         c = self.config
         views = list(views)
@@ -406,6 +406,8 @@ class GaussianTrainer:
         positions = ranks.positions(batch) if ranks is not None else list(range(batch))
         if len(positions) != len(views):
             raise ValueError(f"this rank renders {len(positions)} of the batch's {batch} views, got {len(views)}")
+        if ranks is not None and c.background == "random" and any(v.background is None for v in views):
+            raise ValueError("with ranks, give every view its background colour (a colour drawn here would differ between ranks)")
         n = len(self.model)
         degree = min(self.active_sh_degree, self.model.sh_degree)
         self.optimizer.lrs = self.learning_rates()
