@@ -223,7 +223,7 @@ def main() -> None:
     load.join()
 
     lines = ["# Data-parallel training: ranks against threads", "", machine_line() + f", {time.strftime('%Y-%m-%d')}", "",
-             load.line(os.cpu_count() or 1, 2.5), "",
+             load.line(os.cpu_count() or 1, 3.5), "",  # its own: 2 ranks, and mlx.launch's loop (about 1.3 cores) in one run
              f"Batch size 2, vanilla, SH degree 3, median of {args.steps} steps after a warm-up step "
              "(`python bench/train_distributed.py`).", "",
              "| Gaussians | image | 1 rank x 2 threads (s/step) | 2 ranks x 1 thread (s/step) | ratio | all-sum (s/step) "
