@@ -186,14 +186,14 @@ def test_a_training_error_keeps_the_last_good_state(extension, clean_scene, data
 
     op = extension.addon.operators.MLX3D_OT_train
     session = train.TrainSession(dataset, steps=50, update_every=2, sh_degree=0)
-    good_step = session.trainer.step
+    good_step = session.trainer.step_batch  # what fit calls each step
 
     def failing_step(*args, **kwargs):
         if session.trainer.step_count == 3:
             raise TrainingError("step 4: the loss or a gradient is not finite (loss nan); parameters left at the last good step")
         return good_step(*args, **kwargs)
 
-    session.trainer.step = failing_step
+    session.trainer.step_batch = failing_step
     state = OperatorState(op, session, TICK_SECONDS=60.0)  # the error comes within the first tick
     assert op.modal(state, bpy.context, TIMER) == {"FINISHED"}
     assert state._session is None
