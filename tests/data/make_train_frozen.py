@@ -4,7 +4,8 @@ tests/test_train_batches.py::test_batch_size_one_is_bitwise_the_frozen_runs.
 Each run trains a small seeded scene through ``GaussianTrainer.fit`` on a
 folder dataset (view draws, random backgrounds behind opaque photos), with a
 densification round, an opacity reset, MCMC relocation and growth, SGLD
-noise and a bilateral grid between them. The file was written before
+noise, a bilateral grid and 2DGS surfels with their geometry losses between
+them. The file was written before
 batches of views existed; the test checks that batch size 1 on one process
 still reproduces it bit for bit. Rerunning this script overwrites it with the
 current trainer's results, so only do that on purpose:
@@ -32,6 +33,8 @@ RUNS = {
                  sh_increase_every=10, init_background_points=0),
     "grid": dict(steps=30, densify_from=5, densify_every=10, densify_until=25, densify_grad_threshold=1e-6,
                  bilateral_grid=True, bilateral_grid_shape=(4, 4, 2), bilateral_grid_warmup=5),
+    "surfels": dict(method="2dgs", steps=30, densify_from=5, densify_every=10, densify_until=25, densify_grad_threshold=1e-6,
+                    geometry_from=10),
 }
 
 
@@ -70,7 +73,8 @@ def run(name: str, folder: Path, ranks=None, progress=None, **overrides) -> dict
 
     start, dataset = scene(folder)
     config = TrainerConfig(seed=3, **{**RUNS[name], **overrides})
-    trainer = GaussianTrainer(GaussianModel(dict(start.params)), config, scene_extent=dataset.scene_extent(), ranks=ranks)
+    trainer = GaussianTrainer(GaussianModel(dict(start.params)), config, scene_extent=dataset.scene_extent(),
+                              **({} if ranks is None else {"ranks": ranks}))
     trainer.fit(dataset, progress=progress)
     return {k: np.array(v) for k, v in trainer.model.params.items()}, trainer
 
