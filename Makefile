@@ -50,13 +50,15 @@ BUILD_DIR ?= build/$(if $(filter .venv,$(VENV)),,$(VENV:.%=%)/){wheel_tag}
 #                    as Apple clang builds it on macOS, and the kernel tests against it
 #   test-macos-compile .venv-macos   the module's C++ sources cross-compiled for macOS arm64 (zig c++,
 #                    the macOS MLX wheel's headers): tests/test_macos_compile.py
+#   test-docs       .venv            the documentation site built strictly (`make docs`); the pages'
+#                    examples run in the suites above (tests/test_docs.py)
 # Each entry prints its wall time. PYTEST_ARGS adds pytest options (e.g. -x, -k).
-TEST_MATRIX := test-py311 test-py313 test-blender45 test-blender53 test-pip-editable test-pure test-mac-path test-clang test-macos-compile
+TEST_MATRIX := test-py311 test-py313 test-blender45 test-blender53 test-pip-editable test-pure test-mac-path test-clang test-macos-compile test-docs
 BPY_LTS := 4.5.15
 BPY_LATEST := 5.3.0
 PYTEST_ARGS ?=
 
-.PHONY: demo test $(TEST_MATRIX) test-venv peer-tools bench bench-scenes report install extension
+.PHONY: demo test $(TEST_MATRIX) test-venv peer-tools bench bench-scenes report install extension docs
 
 # `make demo` runs the Blender extension as a user would: it builds the extension
 # zip for this machine and the venv's Python (build/demo-extension/), installs and
@@ -206,6 +208,24 @@ report: $(STAMP)
 	$(VENV)/bin/mlx3d bench accuracy --out docs/accuracy
 
 install: $(STAMP)
+
+# `make docs` builds the documentation site into site/ (git-ignored) with MkDocs, the Material theme
+# and mkdocstrings, strictly: a broken link, a page missing from the nav or a reference that does not
+# resolve fails it. The API and command-line references are generated at build time
+# (docs/hooks/). The tools are pinned here and installed into .venv.
+DOCS_PINS := mkdocs==1.6.1 mkdocs-material==9.8.2 mkdocstrings==1.0.8 mkdocstrings-python==2.0.11
+space := $(subst ,, )
+DOCS_STAMP = $(VENV)/.mlx3d-docs-$(subst ==,-,$(subst $(space),_,$(DOCS_PINS)))
+$(DOCS_STAMP): $(STAMP)
+	$(PY) -m pip install -q $(DOCS_PINS)
+	rm -f $(VENV)/.mlx3d-docs-*
+	touch $@
+docs: $(DOCS_STAMP)
+	NO_MKDOCS_2_WARNING=1 $(PY) -m mkdocs build --strict --site-dir site
+
+test-docs:
+	@$(call require_python,3.11,$(PYTHON311))
+	$(MAKE) --no-print-directory docs VENV=.venv PYTHON="$(PYTHON311)" BPY=$(BPY_3.11)
 
 # The Blender extension zip(s) in dist/ (see addon/package.py): this machine's
 # platform, or `make extension PLATFORM=linux-x64,macos-arm64,windows-x64,linux-arm64`

@@ -20,7 +20,7 @@ cameras) and writes, under ``out_dir``::
                                  transform); x y z (float), red green blue (uchar, sRGB,
                                  the mean of the vertex's corner colours), face lists
 
-Conventions (see README "Conventions" and ``mlx3d.cameras``):
+Conventions (see docs/reference/conventions.md and ``mlx3d.cameras``):
 
 - Intrinsics come from ``addon.camera.camera_from_blender``, whose pixel frame
   has the top-left image corner at (0, 0) and pixel (row i, col j) centred at

@@ -8,7 +8,7 @@
 Every DATA_DIR is a dataset folder ``mlx3d.datasets.load_dataset`` reads, its
 folder name the scene's name; ``--suite DIR`` adds every dataset folder in
 DIR (``bench/scenes.py`` generates the benchmark set into ``bench_data/``).
-The README's single-scene numbers use the captured demo scene (``make demo``
+The single-scene numbers of docs/benchmarks/training.md use the captured demo scene (``make demo``
 writes it to ``demo_out/dataset``: 256², about 70 training and 10 held-out
 views).
 

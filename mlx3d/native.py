@@ -28,7 +28,7 @@ BUILD_HINT = (
     "Build it from the repository root: install the build requirements "
     "(Linux: pip install \"mlx[cpu]==0.32.4\" nanobind==3.1.0 scikit-build-core; "
     "macOS: pip install mlx==0.32.4 nanobind==3.1.0 scikit-build-core), then run "
-    "`pip install --no-build-isolation -e .` (or the README's make target). "
+    "`pip install --no-build-isolation -e .` (or `make install`). "
     "A C++20 compiler (required by the MLX headers) and CMake >= 3.24 are needed."
 )
 

@@ -2,7 +2,7 @@
 independently of mlx3d.render (loops, no tiles shared), for small test scenes.
 
 EWA projection with the frustum clamp, blur, radius = ceil(3 sqrt(λmax)),
-tile rule and the per-pixel front-to-back loop of the README's conventions,
+tile rule and the per-pixel front-to-back loop of docs/guides/rendering.md,
 optionally with a surface layer (mlx3d.render.surface) composited in depth order.
 """
 

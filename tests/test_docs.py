@@ -117,3 +117,22 @@ def test_make_targets_exist(page):
                 if "=" in target:
                     continue
                 assert target in targets, f"{page.relative_to(ROOT)}:{line}: `make {target}` is not a Makefile target"
+
+
+def test_readme_is_short_and_its_cli_table_lists_every_command():
+    import argparse
+
+    from mlx3d.cli import build_parser
+
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    assert len(text.splitlines()) <= 300, "the README is for a first session; details go to docs/"
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    listed = re.findall(r"^\| `mlx3d (\w+)", text, re.M)
+    assert sorted(listed) == sorted(sub.choices), (listed, list(sub.choices))
+
+
+def test_readme_links_point_at_files():
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    for target in re.findall(r"\]\(([^)#\s]+)(?:#[^)]*)?\)", text):
+        if "://" not in target:
+            assert (ROOT / target).exists(), f"README.md links to {target}, which does not exist"

@@ -1,9 +1,9 @@
 """The CPU rasterizer (mlx3d.render.raster_cpu, the C++ MLX primitives) against
-a float64 numpy oracle written here from the README's rasterizer rules.
+a float64 numpy oracle written here from the rasterizer rules of docs/guides/rendering.md.
 
 The oracle loops over pixels and, for each, over its tile's Gaussians in
 flatten_ids order, exactly as the rules read. Binning is also rebuilt here from
-radii and depths with the README's tile rule. Gradients are checked against
+radii and depths with the tile rule of docs/guides/rendering.md. Gradients are checked against
 central finite differences of the oracle on scenes generated with a margin
 from every discontinuity (the 1/255 skip, the 0.99 clamp, the 1e-4 stop), so
 that finite differences are meaningful.
@@ -44,7 +44,7 @@ GRAD_ATOL = 1e-5
 # binning and oracle (float64, literal)
 # --------------------------------------------------------------------------- #
 def bin_scene(means, radii, depths, width, height, tile):
-    """tile_offsets, flatten_ids by the README rule (loops, no vectorisation)."""
+    """tile_offsets, flatten_ids by the tile rule of docs/guides/rendering.md (loops, no vectorisation)."""
     tiles_x = -(-width // tile)
     tiles_y = -(-height // tile)
     lists = [[] for _ in range(tiles_x * tiles_y)]

@@ -1,5 +1,5 @@
 """The MLX tile rasterizer (mlx3d.render.raster_mlx, backend 'mlx') against the float64 numpy oracle of
-tests/test_rasterize_cpu.py (the README's rasterizer rules, pixel by pixel) and its central finite
+tests/test_rasterize_cpu.py (the rasterizer rules of docs/guides/rendering.md, pixel by pixel) and its central finite
 differences; its invariances (thread count, batch size); the C++ kernel where it is built."""
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Compositing the splats with a per-pixel surface layer (mlx3d.render.surface).
 
 Oracle: tests/render_oracle.py, a float64 numpy loop with its own projection,
-per pixel over every projected Gaussian of the pixel's tile (the README's tile
+per pixel over every projected Gaussian of the pixel's tile (the tile
 rule, which the renderer's binning matches) in global (depth, index) order,
 with the surface event of the module docstring. Restricting to the tile rule
 keeps the comparison tight: without it the oracle would also add the faint

@@ -244,7 +244,7 @@ def test_camera_inside_the_scene(scene, tmp_path, method):
 # ------------------------------------------------------------------ 3. exposure differences
 EXPOSURE = (-0.2, 0.2, -0.15, 0.15, -0.1, 0.1, -0.05, 0.05, 0.2, -0.2)  # of the 10 training views
 GRID_SHAPE = (4, 4, 4)  # a coarse grid: the default 16x16x8 has a cell per 3x2.5 pixels at 48x40 and fits the scene itself
-# gsplat's rate for every method: MCMC's default of 1e-3 is set for full-length runs (README, "The bilateral grid on
+# gsplat's rate for every method: MCMC's default of 1e-3 is set for full-length runs (docs/benchmarks/scenes.md, "The bilateral grid on
 # the exposure scene"); in 160 steps a grid at that rate moves too little to follow the exposures
 GRID_LR = 2e-3
 

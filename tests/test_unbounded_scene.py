@@ -100,7 +100,7 @@ def outdoor(tmp_path_factory):
 def _held_out(dataset, method, **overrides):
     # Both methods train over the black these photos show around nothing: this test compares the density
     # methods. The default behind opaque photos, a random colour per step, is ahead for both at the
-    # benchmark scenes' 3,000 steps (README), but after 700 steps here it still costs MCMC's backdrop
+    # benchmark scenes' 3,000 steps (docs/benchmarks/scenes.md), but after 700 steps here it still costs MCMC's backdrop
     # more (held-out 19.9 vs 21.8 dB) than vanilla (20.8 vs 21.6 dB).
     config = TrainerConfig(method=method, steps=STEPS, sh_increase_every=200, densify_from=100, densify_until=600, densify_every=50,
                            opaque_background=None, **overrides)
@@ -118,7 +118,7 @@ def _held_out(dataset, method, **overrides):
 def test_mcmc_holds_up_against_vanilla_off_the_training_ring(outdoor):
     # Against vanilla without its backdrop, as this test was written: with it (the default now) vanilla
     # reaches 29.4 dB here after 700 steps, far ahead of MCMC, whose small, half-opaque start (gsplat's
-    # MCMC preset) covers the frame more slowly; at the benchmark scenes' 3,000 steps (README) MCMC leads.
+    # MCMC preset) covers the frame more slowly; at the benchmark scenes' 3,000 steps (docs/benchmarks/scenes.md) MCMC leads.
     vanilla, n_vanilla = _held_out(outdoor, "vanilla", init_background_points=0)
     mcmc, n_mcmc = _held_out(outdoor, "mcmc", max_gaussians=None)
     print(f"vanilla {vanilla.round(1)} ({n_vanilla}), mcmc {mcmc.round(1)} ({n_mcmc})")

@@ -14,7 +14,7 @@
 // standard library calls or address-space qualifiers; C++-only or Metal-only
 // lines go behind `__METAL_VERSION__`.
 //
-// Conventions (README, "Rasterizer math"): pixel (row i, col j) has its centre
+// Conventions (docs/guides/rendering.md): pixel (row i, col j) has its centre
 // at (j + 0.5, i + 0.5); d = mean2d - pixel; conic (a, b, c) are the entries of
 // the inverse 2D covariance [[a, b], [b, c]]. Per pixel, front to back:
 //   power = -0.5 * (a dx² + c dy²) - b dx dy;      skip if power > 0

@@ -435,7 +435,7 @@ RM_INLINE bool in_span_ellipse(const Splat& e, double cx, double cy, int q, int 
 // is then read off its words. These steps are free of data-dependent
 // branches: the spans' shapes vary from entry to entry, and loops and
 // branches shaped by them mispredicted (building the lists took about 30% of
-// each kernel's time; README, "The tile kernels, per core").
+// each kernel's time; docs/design/training-step-history.md, "The tile kernels, per core").
 
 // Sets bits [b0, b1] of `bits` (`words` words) when `any` (else nothing; b0
 // and b1 are then ignored, so they may be anything).
@@ -853,7 +853,7 @@ RM_INLINE void finish_surface(LF* sb, int C) {
 // is unrolled, so that GCC's scheduling before register allocation
 // (-fschedule-insns, CMakeLists.txt) interleaves the chains instruction by
 // instruction instead of leaving it to the core's out-of-order window: about
-// 10% off the forward and backward passes (README, "Pair batches"). Each
+// 10% off the forward and backward passes (docs/design/training-step-history.md, "Pair batches"). Each
 // pair runs the same operations, so results are bitwise the same.
 constexpr int kPairBatch = 8;
 static_assert(kPairBatch == 8, "the kernels' '#pragma GCC unroll 8' unrolls one pair batch");
@@ -1380,7 +1380,7 @@ void add_slots(const Inputs& in, int64_t N, int K, int64_t lo0, int64_t hi1, con
 // Slot floats per chunk of tiles in the backward pass: the two chunk buffers take 8 MB, which glibc
 // serves from memory it already holds once the first pass has freed them. Buffers of 16 MB each came
 // from fresh pages every pass (a page fault and a zeroed page per 4 KB: 30-40 ms of CPU per step at
-// 138,766 Gaussians, 648x420); smaller chunks are not slower (README, "A training step at
+// 138,766 Gaussians, 648x420); smaller chunks are not slower (docs/design/training-step-history.md, "A training step at
 // real-capture sizes").
 constexpr int64_t kSlotBudget = int64_t(1) << 20;
 
@@ -1389,7 +1389,7 @@ constexpr int64_t kSlotBudget = int64_t(1) << 20;
 // Tiles are taken in chunks of consecutive tiles holding at most kSlotBudget slot floats (or one
 // tile), each chunk's slots in one of two buffers. A chunk's slots are added to the per-Gaussian sums by
 // thread 0 alone, in order, so the sums do not depend on the thread count. Summing one thread
-// measured faster than splitting it among threads (README, "A training step at real-capture
+// measured faster than splitting it among threads (docs/design/training-step-history.md, "A training step at real-capture
 // sizes"), so instead it overlaps the other threads' tiles: thread 0 sums chunk c as soon as all of
 // its tiles are done, while the others go on with chunk c + 1 (a tile of chunk c + 2 waits until
 // chunk c is summed, whose buffer it reuses). The slot buffers are left uninitialised: each tile

@@ -8,7 +8,7 @@
 // Gaussian per lane, each lane running exactly the float operations of F =
 // float. The pure-MLX reference is mlx3d.splatting.sh.eval_sh.
 //
-// Conventions (README, "Spherical harmonics"): K = (degree+1)² coefficients per
+// Conventions (docs/reference/conventions.md): K = (degree+1)² coefficients per
 // channel in the 3DGS order; the direction is d = mean - camera centre,
 // normalised as d * (|d|² + 1e-12)^(-1/2); colour_c = 0.5 + Σ_k Y_k(u) sh[k][c],
 // summed in k order; the rendered colour is max(colour, 0), whose gradient

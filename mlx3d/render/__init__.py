@@ -13,7 +13,7 @@ primitive, threaded over tiles), 'metal' (Apple GPUs), 'reference' (pure MLX,
 the test oracle); 'auto' takes Metal when available. ``Surface`` is a
 per-pixel layer (e.g. a mesh render with depth) that ``render_gaussians``
 composites with the splats in depth order. Conventions (pixel
-centres at +0.5, OpenCV camera axes) are in the README.
+centres at +0.5, OpenCV camera axes) are in docs/reference/conventions.md.
 """
 
 from .binning import TILE_SIZE, Bins, bin_gaussians, bin_tiles, bins_from_ranges

@@ -1,7 +1,7 @@
 """The CPU rasterizer: a C++ MLX primitive (``mlx3d._core.rasterize_forward``).
 
 ``rasterize_cpu`` composites binned 2D Gaussians front to back with the 3DGS
-rules (README, "Rasterizer math"; the per-pixel code is
+rules (docs/guides/rendering.md; the per-pixel code is
 ``mlx3d/csrc/raster_math.h``, shared with the Metal kernels) and is
 differentiable with ``mx.grad`` / ``mx.value_and_grad`` / ``mx.vjp`` with
 respect to means2d, conics, features and opacities; tile_offsets and

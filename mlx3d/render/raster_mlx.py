@@ -1,7 +1,7 @@
 """The tile rasterizer in MLX operations: backend 'mlx', for wherever the compiled module is missing.
 
 Same inputs, outputs and rules as the C++ and Metal rasterizers
-(``raster_math.h``; README, "Rasterizer math"), forward and backward, and the
+(``raster_math.h``; docs/guides/rendering.md), forward and backward, and the
 forward-only composite with a surface layer (``mlx3d.render.surface``). It
 runs on any MLX device and needs nothing but MLX and numpy.
 

@@ -54,7 +54,7 @@ def init(backend: str = "any") -> "Ranks":
         group = mx.distributed.init(strict=True, backend=backend)
     except (RuntimeError, ValueError) as exc:
         raise DistributedError(f"cannot start MLX's distributed backend {backend!r}: {exc} "
-                               "(run under mlx.launch or mpirun; see the README's data-parallel section)") from exc
+                               "(run under mlx.launch or mpirun; see docs/guides/distributed.md)") from exc
     return Ranks(group)
 
 

@@ -64,7 +64,7 @@ def test_layout_by_version(extension):
     assert L.layout_for((5, 0, 1), False) == L.Layout("FLOAT_COLOR", None, True)
     assert L.layout_for((5, 2, 3), True) == L.Layout("FLOAT4", None, True)
     assert L.layout_for((5, 3, 0), True) == L.Layout("FLOAT4", "GAUSSIAN_SPLAT", False)
-    # the running Blender: FLOAT4 from 5.2, the splat type from 5.3, as the README's table says
+    # the running Blender: FLOAT4 from 5.2, the splat type from 5.3, as docs/guides/blender.md's table says
     assert L.current() == L.layout_for(bpy.app.version, HAS_FLOAT4)
     point_cloud_types = bpy.types.PointCloud.bl_rna.properties.get("type")
     assert (point_cloud_types is not None and "GAUSSIAN_SPLAT" in point_cloud_types.enum_items.keys()) == NATIVE
@@ -78,7 +78,7 @@ def test_import_is_blenders_layout_and_nothing_else(extension, clean_scene):
             ".mlx3d_opacity": "FLOAT", ".mlx3d_log_scale": "FLOAT_VECTOR", ".mlx3d_rot": "QUATERNION",
             "segment": "INT", "confidence": "FLOAT"} | {f"radiance:sh_{k}": "FLOAT_VECTOR" for k in range(15)}
     assert attributes == {name: (t, "POINT") for name, t in want.items()}
-    # the memory the README states: Blender's 236 bytes per splat, 268 with the raw values, 4 per extra
+    # the memory docs/guides/blender.md states: Blender's 236 bytes per splat, 268 with the raw values, 4 per extra
     size = {name: BYTES[t] for name, t in want.items()}
     assert sum(v for k, v in size.items() if not k.startswith(".") and k not in ("segment", "confidence")) == 236
     assert sum(v for k, v in size.items() if k not in ("segment", "confidence")) == 268

@@ -27,7 +27,7 @@ HERE = Path(__file__).resolve().parent
 
 
 def _bin(means, ext_x, ext_y, depths, width, height, tile):
-    """Tile lists by the README rule with per-axis half-extents (0 = culled)."""
+    """Tile lists by the tile rule (docs/guides/rendering.md) with per-axis half-extents (0 = culled)."""
     tiles_x, tiles_y = -(-width // tile), -(-height // tile)
     lists = [[] for _ in range(tiles_x * tiles_y)]
     for g in range(len(means)):
