@@ -194,19 +194,23 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="blender_splat", description="Gaussian splat workflows in Blender, headless.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    def add(name, func, text):
+    def add(name, func, text, reads_splats=True, axis=True):
+        """A subcommand; the options of importing splat files only where it reads them, --axis where it reads or writes them."""
         p = sub.add_parser(name, help=text, description=text)
         p.set_defaults(func=func)
-        p.add_argument("--axis", choices=sorted(workflows.AXIS_PRESETS), default="NONE", help="axis convention of the files (default NONE)")
-        p.add_argument("--sh-degree", type=int, choices=(0, 1, 2, 3), default=None, help="cap the SH degree on import")
-        p.add_argument("--drop-nonfinite", action="store_true", help="drop rows with NaN/Inf instead of refusing the file")
+        if axis:
+            p.add_argument("--axis", choices=sorted(workflows.AXIS_PRESETS), default="NONE", help="axis convention of the files (default NONE)")
+        if reads_splats:
+            p.add_argument("--sh-degree", type=int, choices=(0, 1, 2, 3), default=None, help="cap the SH degree on import")
+            p.add_argument("--drop-nonfinite", action="store_true", help="drop rows with NaN/Inf instead of refusing the file")
         return p
 
     p = add("import", cmd_import, "Import splat files (PLY, SPZ, compressed PLY, .splat, .ksplat, SOG, glTF) as splat objects (and save a .blend).")
     p.add_argument("files", nargs="+", metavar="FILE")
     p.add_argument("--save-blend", metavar="OUT.blend")
 
-    p = add("export", cmd_export, "Export splat objects of a .blend, transforms baked, into one splat file (the extension picks the format).")
+    p = add("export", cmd_export, "Export splat objects of a .blend, transforms baked, into one splat file (the extension picks the format).",
+            reads_splats=False)
     p.add_argument("--blend", required=True, metavar="IN.blend")
     p.add_argument("--objects", nargs="*", metavar="NAME", help="object names (default: every splat object)")
     p.add_argument("--out", required=True, metavar="OUT")
@@ -239,7 +243,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     text = ("Render a .blend's scene from its camera: Blender's objects with the scene's engine, the splat objects with "
             "mlx3d, composited by depth; one frame to a PNG, or a frame range into a folder in the scene's output format.")
-    p = add("render", cmd_render, text)
+    p = add("render", cmd_render, text, reads_splats=False, axis=False)
     p.add_argument("--blend", required=True, metavar="IN.blend")
     p.add_argument("--out", required=True, metavar="OUT", help="a .png for one frame; with --frames, the output folder (default naming and format: the scene's)")
     p.add_argument("--frames", metavar="A-B", help="render frames A to B (inclusive) instead of the current frame")

@@ -480,6 +480,22 @@ def test_headless_render(extension, clean_scene, tmp_path):
     assert tuple(bpy.data.images.load(str(tmp_path / "out.png")).size) == (32, 24)
 
 
+def test_headless_commands_take_only_the_options_they_use(extension, capsys):
+    """Import options (--sh-degree, --drop-nonfinite) belong to the commands that read splat files, --axis to
+    those that read or write them: an option a command would ignore is refused, not dropped silently."""
+    import importlib
+
+    parser = importlib.import_module(extension.__name__ + ".addon.headless").build_parser()
+    assert parser.parse_args(["import", "a.ply", "--axis", "Y_UP", "--sh-degree", "1", "--drop-nonfinite"]).sh_degree == 1
+    assert parser.parse_args(["export", "--blend", "a.blend", "--out", "a.ply", "--axis", "Y_UP"]).axis == "Y_UP"
+    for argv in (["export", "--blend", "a.blend", "--out", "a.ply", "--sh-degree", "1"],
+                 ["export", "--blend", "a.blend", "--out", "a.ply", "--drop-nonfinite"],
+                 ["render", "--blend", "a.blend", "--out", "a.png", "--axis", "Y_UP"]):
+        with pytest.raises(SystemExit):
+            parser.parse_args(argv)
+        assert "unrecognized arguments" in capsys.readouterr().err
+
+
 def test_panel_compact_and_render_sections_pass_their_settings(extension, clean_scene):
     from types import SimpleNamespace
 
