@@ -16,8 +16,8 @@ outdoor
     textured ground running out to the horizon, under a plain sky colour (the
     World background; opaque images, alpha 255). Training: two camera rings
     around the objects (24 views each at 15 and 35 degrees elevation, 3.2 units
-    away). Held out: 10 views off the rings (5 and 60 degrees up, 0.7x closer,
-    1.4x farther, other azimuths), so the test views measure novel-view
+    away). Held out: 10 views off the rings (15 to 60 degrees up, 0.7x closer,
+    1.2x and 1.4x farther, other azimuths; OUTDOOR_HELD_OUT), so the test views measure novel-view
     synthesis rather than interpolation along a ring. nerfstudio layout
     (``transforms.json`` with explicit ``train_filenames`` / ``test_filenames``)
     and 20k initial points with colours on the objects and on the ground
