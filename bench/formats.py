@@ -160,7 +160,9 @@ def main() -> None:
 
     header = ["format", "MB", "/ PLY", "write s", "read s", "PSNR mean", "PSNR worst",
               "peer MB", "peer write s", "peer read s", "peer PSNR mean", "peer PSNR worst"]
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)] + ["| " + " | ".join(r) + " |" for r in rows]
+    lines = ["# Splat file formats: size, speed and picture", "", "`python bench/formats.py --markdown docs/benchmarks/formats.md "
+             "--png docs/benchmarks/formats.png`; the worst view of each format against the PLY's: ![](formats.png)", "",
+             "| " + " | ".join(header) + " |", "|" + "---|" * len(header)] + ["| " + " | ".join(r) + " |" for r in rows]
     note = (f"\n{src.count:,} splats (SH degree {src.sh_degree}) of `{os.path.basename(args.ply)}`, {args.views} views "
             f"{args.size}x{args.size}, best of {args.repeat}; PSNR against the PLY's render (ours, same renderer). "
             + (f"Peer: splat-transform, node start-up {startup:.2f} s taken out." if peer else f"Peer not run: {reason}.")

@@ -528,7 +528,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--random-points", type=int, default=100_000, metavar="N",
                    help="a dataset without points starts from N random points in a cube around what the cameras look at (default 100000)")
     p.add_argument("--background-points", type=int, default=None, metavar="N",
-                   help="N points on a far sphere seed a backdrop (default: mcmc on opaque photos only; 0: none)")
+                   help="N points on a far sphere seed a backdrop (default: vanilla and mcmc on opaque photos; 0: none)")
     p.add_argument("--batch-size", type=_positive_int, default=1, metavar="N",
                    help="views per step (default 1); the learning rates scale by sqrt(N) as in gsplat. With several ranks, "
                         "the batch is shared between them")
@@ -541,7 +541,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--opaque-background", choices=("auto", "random", "black", "white", "same"), default="auto",
                    help="behind training renders when the photos are opaque (no alpha): random (a colour per step, so the "
                         "model cannot go transparent), a fixed colour, or same: --background; auto (default): random when "
-                        "the run seeds a backdrop (mcmc, --background-points), else same")
+                        "the run seeds a backdrop (vanilla and mcmc on opaque photos, --background-points), else same")
 
     p = add("eval", cmd_eval, "PSNR and SSIM of a splat file on a dataset's held-out views, plain and colour-corrected (CC: after the best affine colour map per view); the worst view; side-by-side renders.")
     p.add_argument("model", metavar="MODEL")

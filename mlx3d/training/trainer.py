@@ -93,7 +93,7 @@ class TrainerConfig:
     init_scale: float | None = None  # factor on the mean 3-NN distance: 0.1 (mcmc) or 1
     init_random_points: int = 100_000  # a dataset without points starts from this many random ones
     init_random_extent: float | None = None  # half-side of their cube (None: from the cameras)
-    init_background_points: int | None = None  # None: auto (mcmc on opaque photos); 0: none
+    init_background_points: int | None = None  # None: auto (vanilla and mcmc on opaque photos); 0: none
     init_background_radius: float = 10.0  # their sphere's radius, times the scene extent
     # Gaussians farther than this × the scene extent from the cameras' centre are the backdrop: the size
     # prunes (max_screen_size, 0.1 × extent) leave them alone; None: 3DGS's prunes for every Gaussian.
@@ -207,7 +207,8 @@ def batch_adam(batch_size: int) -> dict:
     if b == 1:
         return {"lr_factor": 1.0, "betas": (0.9, 0.999), "eps": 1e-15}
     root = math.sqrt(b)
-    return {"lr_factor": root, "betas": (max(1 - b * (1 - 0.9), 0.0), max(1 - b * (1 - 0.999), 0.0)), "eps": 1e-15 / root}
+    # 1 - B (1 - 0.9) as (10 - B) / 10: exactly 0 at B = 10 (the float expression leaves 2e-16)
+    return {"lr_factor": root, "betas": (max((10 - b) / 10, 0.0), max((1000 - b) / 1000, 0.0)), "eps": 1e-15 / root}
 
 
 @dataclass
