@@ -118,7 +118,7 @@ def _held_out(dataset, method, **overrides):
 def test_mcmc_holds_up_against_vanilla_off_the_training_ring(outdoor):
     # Against vanilla without its backdrop, as this test was written: with it (the default now) vanilla
     # reaches 29.4 dB here after 700 steps, far ahead of MCMC, whose small, half-opaque start (gsplat's
-    # MCMC preset) covers the frame more slowly; at the benchmark scenes' 3,000 steps (docs/benchmarks/scenes.md) MCMC leads.
+    # MCMC preset) covers the frame more slowly; at the benchmark scenes' 3,000 steps (docs/benchmarks/scenes.md) vanilla leads too.
     vanilla, n_vanilla = _held_out(outdoor, "vanilla", init_background_points=0)
     mcmc, n_mcmc = _held_out(outdoor, "mcmc", max_gaussians=None)
     print(f"vanilla {vanilla.round(1)} ({n_vanilla}), mcmc {mcmc.round(1)} ({n_mcmc})")
