@@ -172,13 +172,16 @@ def test_zip_holds_its_platforms_wheels_and_names_them(platform, zips, pins):
     with zipfile.ZipFile(result.zip_path) as zf:
         names = zf.namelist()
         manifest = tomllib.loads(zf.read("blender_manifest.toml").decode())
+        licence = zf.read("LICENSE").decode()
     wheels = sorted(n.removeprefix("wheels/") for n in names if n.startswith("wheels/"))
     assert set(wheels) == expected_wheels(pins, platform)
+    # The licence text the manifest names travels with the add-on.
+    assert manifest["license"] == ["SPDX:MIT"] and licence.startswith("MIT License") and licence == (ROOT / "LICENSE").read_text()
     assert manifest["platforms"] == [platform]
     assert manifest["wheels"] == [f"./wheels/{w}" for w in wheels]
     assert sorted(result.wheels) == wheels
     # Nothing else but the add-on: no sources of the core, no tooling.
-    assert {n.split("/", 1)[0] for n in names} == {"blender_manifest.toml", "__init__.py", "addon", "wheels"}
+    assert {n.split("/", 1)[0] for n in names} == {"blender_manifest.toml", "__init__.py", "LICENSE", "addon", "wheels"}
     assert "addon/package.py" not in names and not any("__pycache__" in n for n in names)
 
 

@@ -512,3 +512,37 @@ def test_panel_compact_and_render_sections_pass_their_settings(extension, clean_
     assert render.antialias is True and render.filepath == "//out.png" and animation.antialias is True
     labels = [entry[1] for entry in log if entry[0] == "label"]
     assert "Compact" in labels and "Render (scene camera)" in labels
+
+
+def test_the_documented_headless_commands_parse(extension, capsys):
+    """Every `blender_splat.py ...` command the README and the docs show (after `python` or `blender -b -P ... --`)
+    parses with the headless script's own definitions, so a renamed or removed option fails here."""
+    import importlib
+    import shlex
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from test_docs import PAGES, SHELL, _blocks
+
+    parser = importlib.import_module(extension.__name__ + ".addon.headless").build_parser()
+    checked = 0
+    for page in PAGES:
+        for line, body in _blocks(page, SHELL):
+            for raw in body.replace("\\\n", " ").splitlines():
+                text = raw.strip()[2:] if raw.strip().startswith("$ ") else raw.strip()
+                words = shlex.split(text, comments=True) if "blender_splat.py" in text or '-P "$S"' in text else []
+                at = next((i for i, w in enumerate(words) if w.endswith("blender_splat.py") or w == '$S'), None)
+                if at is None:
+                    continue
+                argv = words[at + 1:]
+                if argv[:1] == ["--"]:
+                    argv = argv[1:]
+                if not argv or argv[0] in ("COMMAND", "--help", "-h", "…"):
+                    continue
+                try:
+                    parser.parse_args(argv)
+                except SystemExit as exc:
+                    raise AssertionError(f"{page.name}:{line}: `{text}` does not parse: {capsys.readouterr().err.strip()}") from exc
+                checked += 1
+    assert checked >= 10
