@@ -30,6 +30,10 @@ import make_train_frozen as frozen  # noqa: E402
 WORKER = HERE / "distributed_worker.py"
 LAUNCH = Path(sys.executable).parent / "mlx.launch"
 needs_launcher = pytest.mark.skipif(not LAUNCH.exists(), reason=f"mlx.launch is not beside {sys.executable}")
+# Process orchestration (the CLI on ranks, Ctrl+C) is the same code whichever kernels render; the entry without
+# the compiled module (make test-pure, where every step is several times slower) leaves it to the others.
+orchestration = pytest.mark.skipif(bool(os.environ.get("MLX3D_NO_CORE")),
+                                   reason="orchestration only: run by the entries with the compiled module")
 
 
 def _free_ports(count: int) -> list:
@@ -239,6 +243,7 @@ def test_ranks_with_different_settings_refuse_to_start(tmp_path):
 
 
 @needs_launcher
+@orchestration
 def test_mlx3d_train_on_two_ranks_writes_what_one_process_writes(tmp_path):
     """``mlx.launch ... mlx3d train --batch-size 2``: rank 0 alone reports and writes the output and
     checkpoints; the file is byte for byte the one a single process writes with --batch-size 2."""
@@ -263,6 +268,7 @@ def test_mlx3d_train_on_two_ranks_writes_what_one_process_writes(tmp_path):
     assert not (tmp_path / "x.ply").exists()
 
 
+@orchestration
 def test_ctrl_c_stops_every_rank_after_the_same_step_and_rank_0_saves(tmp_path):
     """SIGINT to both ranks (what Ctrl+C in a terminal sends to its foreground processes) at different moments:
     both stop after the same step, exit with 130, and rank 0 writes the model and a checkpoint of that step."""
@@ -274,7 +280,7 @@ def test_ctrl_c_stops_every_rank_after_the_same_step_and_rank_0_saves(tmp_path):
     ports = _free_ports(2)
     hostfile = tmp_path / "hosts.json"
     hostfile.write_text(json.dumps([[f"127.0.0.1:{p}"] for p in ports]))
-    cmd = [sys.executable, "-m", "mlx3d", "train", ".", "--out", "cut.ply", "--batch-size", "2", "--steps", "5000", "--random-points", "300"]
+    cmd = [sys.executable, "-m", "mlx3d", "train", ".", "--out", "cut.ply", "--batch-size", "2", "--steps", "1000", "--random-points", "300"]
     logs = [open(tmp_path / f"log{r}.txt", "w+") for r in range(2)]
     procs = [subprocess.Popen(cmd, cwd=tmp_path, env=dict(os.environ, MLX_RANK=str(r), MLX_HOSTFILE=str(hostfile)), stdout=logs[r],
                               stderr=subprocess.STDOUT) for r in range(2)]
@@ -293,6 +299,6 @@ def test_ctrl_c_stops_every_rank_after_the_same_step_and_rank_0_saves(tmp_path):
     text = (tmp_path / "log0.txt").read_text()
     assert codes == [130, 130], (codes, text[-2000:])
     step = int(text.split("cancelled at step ")[1].split(":")[0])
-    assert 0 < step < 5000
+    assert 0 < step < 1000
     assert GaussianTrainer.load_checkpoint(tmp_path / "checkpoint.npz").step_count == step
     assert (tmp_path / "cut.ply").exists()
