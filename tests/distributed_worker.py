@@ -1,9 +1,9 @@
 """One rank of the distributed training tests (tests/test_distributed.py), started by ``mlx.launch``.
 
-    python tests/distributed_worker.py MODE OUT_DIR
+    python tests/distributed_worker.py MODE OUT_DIR [RUN ...]
 
-MODE 'train': the frozen runs of tests/data/make_train_frozen.py at batch size 2; each rank
-saves its parameters to OUT_DIR/rank{r}.npz. 'die': rank 1 exits after step 7 of a run that
+MODE 'train': the frozen runs of tests/data/make_train_frozen.py (RUN names, default all) at batch
+size 2; each rank saves its parameters to OUT_DIR/rank{r}.npz. 'die': rank 1 exits after step 7 of a run that
 checkpoints every 5 steps into OUT_DIR. 'mismatch': rank 1 has a different setting. A rank
 that fails writes its error to OUT_DIR/rank{r}.err.
 """
@@ -18,7 +18,7 @@ sys.path.insert(0, str(HERE / "data"))
 sys.path.insert(0, str(HERE.parent))
 
 
-def main(mode: str, out: Path) -> None:
+def main(mode: str, out: Path, runs=()) -> None:
     import numpy as np
 
     import make_train_frozen as frozen
@@ -30,7 +30,7 @@ def main(mode: str, out: Path) -> None:
         with tempfile.TemporaryDirectory() as tmp:
             if mode == "train":
                 saved = {}
-                for name in frozen.RUNS:
+                for name in runs or frozen.RUNS:
                     folder = Path(tmp) / name
                     folder.mkdir()
                     params, trainer = frozen.run(name, folder, ranks=ranks, batch_size=2)
@@ -50,4 +50,4 @@ def main(mode: str, out: Path) -> None:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1], Path(sys.argv[2]))
+    main(sys.argv[1], Path(sys.argv[2]), sys.argv[3:])
