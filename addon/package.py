@@ -22,8 +22,10 @@ exactly the wheels inside. Per platform, for each Python (3.11 and 3.13):
 - ``linux-arm64``: ``mlx`` and ``mlx-cpu`` (``manylinux_2_35_aarch64``) and our
   pure-Python wheel: pure MLX on the CPU.
 
-All of them also bundle ``plyfile``, ``pillow`` and ``zstandard``; numpy is not bundled:
-Blender ships it. Every zip is built on any machine from the registry's
+All of them also bundle ``plyfile``, ``pillow`` and ``zstandard``, and all but
+``linux-arm64`` ``pycolmap`` (camera poses from photos, the ``poses`` extra; it
+publishes no Linux arm64 wheels, so that zip does without it); numpy is not
+bundled: Blender ships it. Every zip is built on any machine from the registry's
 wheels, except that the compiled linux-x64 wheels are built on a linux-x64
 machine (elsewhere they must already be in ``wheels/``).
 
@@ -32,7 +34,8 @@ Steps, each printed as it runs (once per platform):
 1. Read the pins: this project's wheel name and version from ``pyproject.toml``
    (``[project]``), and the exact pins of the bundled dependencies from its
    ``[project].dependencies`` (``mlx==…``, ``plyfile==…``, ``pillow==…``; a pin
-   of MLX's library wheel, ``mlx-cpu==…`` for Windows, must equal mlx's).
+   of MLX's library wheel, ``mlx-cpu==…`` for Windows, must equal mlx's) and
+   from the extras in ``BUNDLED_EXTRAS`` (``pycolmap==…`` of ``poses``).
    The ``platforms`` and ``wheels = [...]`` lists of ``blender_manifest.toml``
    are generated from ``PLATFORMS`` below and these pins (every platform,
    Python 3.11 and 3.13) and rewritten when they differ, so versions live in
@@ -40,13 +43,17 @@ Steps, each printed as it runs (once per platform):
 2. Download the third-party wheels with ``pip download --only-binary=:all:
    --no-deps --python-version 3.X --platform TAG`` into ``wheels/``: ``mlx`` (one
    wheel per Python), its library wheel (``mlx-cpu`` on Linux and Windows,
-   ``mlx-metal`` on macOS), ``pillow`` (one per Python) and ``plyfile``. Files
-   already there are reused. Then check that a ``pip install`` of our wheel on
-   that platform pulls exactly ``mlx`` and that library wheel: from the markers
-   of ``[project].dependencies`` and the downloaded ``mlx`` wheel's own
+   ``mlx-metal`` on macOS), the compiled dependencies of
+   ``BINARY_WHEEL_TAGS`` (``pillow``, ``zstandard``, ``pycolmap``: one per
+   Python, on the platforms the table names) and ``plyfile``. Files already
+   there are reused. Then check that a ``pip install`` of our wheel on that
+   platform pulls exactly ``mlx`` and that library wheel: from the markers of
+   ``[project].dependencies`` and the downloaded ``mlx`` wheel's own
    ``Requires-Dist`` (with the extras we ask for). mlx's ``cpu`` extra adds
    ``mlx-cpu`` on Linux only, while its Windows wheel needs ``mlx.dll`` from
    ``mlx-cpu``: hence the explicit ``mlx-cpu`` pin for Windows in pyproject.toml.
+   And that the markers of every other bundled pin (``pycolmap``'s in
+   ``poses``) pull it on exactly the platforms whose zip bundles it.
 3. This project's wheel ``mlx3d_splat``:
 
    - linux-x64: the compiled wheel (``mlx3d`` and ``mlx3d._core``), built once
@@ -143,13 +150,20 @@ PROVIDED_BY_BLENDER = frozenset({"numpy"})
 #: Bundled dependencies (besides mlx and its library wheel) that are pure Python.
 PURE_PYTHON = frozenset({"plyfile"})
 
+#: Extras of ``[project.optional-dependencies]`` the zips bundle too (the add-on
+#: offers what they enable): their pins are ``Pins.extras``, and each of their
+#: dependencies is in ``PURE_PYTHON``, ``BINARY_WHEEL_TAGS`` or ``PROVIDED_BY_BLENDER``.
+BUNDLED_EXTRAS = ("poses",)
+
 #: MLX's library wheels (``libmlx``); a pin of one in ``[project].dependencies``
 #: must equal mlx's. Which one a platform bundles is ``Platform.mlx_library``.
 MLX_LIBRARIES = frozenset({"mlx_cpu", "mlx_metal"})
 
 #: Bundled compiled dependencies (one wheel per Python and platform): the platform
 #: part of their wheel file names as published for the pinned version, per Blender
-#: platform. ``pip download --platform`` gets the last tag of a compound one.
+#: platform. ``pip download --platform`` gets the last tag of a compound one. A
+#: platform left out gets none of the package's wheels (the package publishes none
+#: there), and the markers of its pin must leave it out too (checked in step 2).
 BINARY_WHEEL_TAGS = {
     "pillow": {
         "linux-x64": "manylinux_2_27_x86_64.manylinux_2_28_x86_64",
@@ -162,6 +176,12 @@ BINARY_WHEEL_TAGS = {
         "macos-arm64": "macosx_11_0_arm64",
         "windows-x64": "win_amd64",
         "linux-arm64": "manylinux2014_aarch64.manylinux_2_17_aarch64",
+    },
+    # The poses extra. No Linux arm64 wheels; the macOS ones need macOS 14.
+    "pycolmap": {
+        "linux-x64": "manylinux_2_28_x86_64",
+        "macos-arm64": "macosx_14_0_arm64",
+        "windows-x64": "win_amd64",
     },
 }
 
@@ -244,8 +264,14 @@ PLATFORMS = {
 class Pins:
     own_name: str  # distribution name of this project, normalised for wheel file names
     own_version: str
-    bundled: dict  # normalised distribution name -> exact version
+    bundled: dict  # normalised distribution name -> exact version, of [project].dependencies
     build_requires: tuple[str, ...]
+    extras: dict  # the same, of the extras in BUNDLED_EXTRAS (pycolmap of poses)
+
+    @property
+    def pinned(self) -> dict:
+        """Every bundled pin: ``bundled`` and ``extras``."""
+        return {**self.bundled, **self.extras}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -332,27 +358,37 @@ _REQ = re.compile(r"^\s*([A-Za-z0-9][A-Za-z0-9._-]*)\s*(?:\[[^\]]*\])?\s*(?:==\s
 def read_pins(pyproject: Path = PYPROJECT) -> Pins:
     data = tomllib.loads(pyproject.read_text())
     project = data["project"]
+    optional = project.get("optional-dependencies", {})
     bundled: dict[str, str] = {}
+    extras: dict[str, str] = {}
     libraries: dict[str, str] = {}
-    for requirement in project.get("dependencies", []):
-        match = _REQ.match(requirement)
-        if not match:
-            raise PackagingError(f"{pyproject.name}: cannot read dependency {requirement!r}")
-        name, version = _normalise(match.group(1)), match.group(2)
-        if name in PROVIDED_BY_BLENDER:
-            continue
-        if name in MLX_LIBRARIES:
-            libraries[requirement] = version
-            continue
-        if name != "mlx" and name not in PURE_PYTHON and name not in BINARY_WHEEL_TAGS:
-            raise PackagingError(
-                f"{pyproject.name}: dependency {requirement!r} is neither bundled nor provided by Blender; "
-                "add it to PURE_PYTHON, BINARY_WHEEL_TAGS or PROVIDED_BY_BLENDER in addon/package.py"
-            )
-        if not version:
-            raise PackagingError(f"{pyproject.name}: bundled dependency {requirement!r} must be pinned with ==")
-        if bundled.setdefault(name, version) != version:
-            raise PackagingError(f"{pyproject.name}: {name} is pinned to both {bundled[name]} and {version}")
+    sources = [("[project].dependencies", project.get("dependencies", []), bundled)]
+    for extra in BUNDLED_EXTRAS:
+        if extra not in optional:
+            raise PackagingError(f"{pyproject.name}: no [project.optional-dependencies] {extra} (BUNDLED_EXTRAS)")
+        sources.append((f"[project.optional-dependencies] {extra}", optional[extra], extras))
+    for source, requirements, pins in sources:
+        for requirement in requirements:
+            match = _REQ.match(requirement)
+            if not match:
+                raise PackagingError(f"{pyproject.name}: cannot read dependency {requirement!r} of {source}")
+            name, version = _normalise(match.group(1)), match.group(2)
+            if name in PROVIDED_BY_BLENDER:
+                continue
+            if pins is bundled and name in MLX_LIBRARIES:
+                libraries[requirement] = version
+                continue
+            if not (name in PURE_PYTHON or name in BINARY_WHEEL_TAGS or (name == "mlx" and pins is bundled)):
+                raise PackagingError(
+                    f"{pyproject.name}: dependency {requirement!r} of {source} is neither bundled nor provided by "
+                    "Blender; add it to PURE_PYTHON, BINARY_WHEEL_TAGS or PROVIDED_BY_BLENDER in addon/package.py"
+                )
+            if not version:
+                raise PackagingError(f"{pyproject.name}: bundled dependency {requirement!r} must be pinned with ==")
+            have = {**bundled, **extras}.get(name, version)
+            if have != version:
+                raise PackagingError(f"{pyproject.name}: {name} is pinned to both {have} and {version}")
+            pins[name] = version
     if "mlx" not in bundled:
         raise PackagingError(f"{pyproject.name}: no mlx==VERSION pin in [project].dependencies")
     for requirement, version in libraries.items():
@@ -364,6 +400,7 @@ def read_pins(pyproject: Path = PYPROJECT) -> Pins:
         own_version=project["version"],
         bundled=bundled,
         build_requires=tuple(data["build-system"]["requires"]),
+        extras=extras,
     )
 
 
@@ -394,13 +431,15 @@ def expected_wheels(pins: Pins, platforms, pythons) -> list[Wheel]:
             add(Wheel(f"mlx-{mlx}-{tag}-{tag}-{plat.mlx_tag}.whl", f"mlx=={mlx}", python, plat.name, plat.mlx_tag))
             if plat.compiled:
                 add(Wheel(compiled_wheel_name(pins, plat, python), None, python, plat.name))
-            for name in sorted(BINARY_WHEEL_TAGS.keys() & pins.bundled.keys()):
-                version, wheel_tag = pins.bundled[name], BINARY_WHEEL_TAGS[name][plat.name]
+            for name in sorted(BINARY_WHEEL_TAGS.keys() & pins.pinned.keys()):
+                if plat.name not in BINARY_WHEEL_TAGS[name]:
+                    continue  # no wheels for this platform: not bundled there
+                version, wheel_tag = pins.pinned[name], BINARY_WHEEL_TAGS[name][plat.name]
                 add(Wheel(f"{name}-{version}-{tag}-{tag}-{wheel_tag}.whl", f"{name}=={version}", python, plat.name, wheel_tag.split(".")[-1]))
         add(Wheel(f"{_normalise(plat.mlx_library)}-{mlx}-py3-none-{plat.mlx_tag}.whl",
                   f"{plat.mlx_library}=={mlx}", None, plat.name, plat.mlx_tag))
-    for name in sorted(PURE_PYTHON & pins.bundled.keys()):
-        version = pins.bundled[name]
+    for name in sorted(PURE_PYTHON & pins.pinned.keys()):
+        version = pins.pinned[name]
         add(Wheel(f"{name}-{version}-py3-none-any.whl", f"{name}=={version}", None, None))
     return [wheels[k] for k in sorted(wheels)]
 
@@ -516,6 +555,12 @@ def wheel_requires_dist(path: Path) -> list[str]:
     return metadata.get_all("Requires-Dist") or []
 
 
+def _marker_environment(plat: Platform, python: tuple[int, int]) -> dict[str, str]:
+    """The PEP 508 environment of CPython ``python`` on ``plat`` (what markers are evaluated against)."""
+    return {**dict(plat.markers), "python_version": _fmt_py(python), "python_full_version": f"{_fmt_py(python)}.0",
+            "implementation_name": "cpython", "platform_python_implementation": "CPython"}
+
+
 def mlx_distributions(plat: Platform, python: tuple[int, int], own_requires, mlx_requires) -> set[str]:
     """MLX's distributions that ``pip install`` of our wheel pulls on this platform and Python.
 
@@ -524,8 +569,7 @@ def mlx_distributions(plat: Platform, python: tuple[int, int], own_requires, mlx
     ``Requires-Dist`` with the extras we ask for (normalised names).
     """
     requirement = _requirement_class()
-    env = {**dict(plat.markers), "python_version": _fmt_py(python), "python_full_version": f"{_fmt_py(python)}.0",
-           "implementation_name": "cpython", "platform_python_implementation": "CPython"}
+    env = _marker_environment(plat, python)
 
     def applies(req, extras=("",)) -> bool:
         return req.marker is None or any(req.marker.evaluate({**env, "extra": extra}) for extra in extras)
@@ -566,6 +610,47 @@ def check_mlx_requirements(pins: Pins, plat: Platform, pythons) -> None:
                 "or Platform.mlx_library in addon/package.py"
             )
     log(f"  Requires-Dist: pip install {pins.own_name} pulls mlx and {plat.mlx_library} on {plat.name}")
+
+
+def check_bundled_markers(pins: Pins, plat: Platform, pythons) -> None:
+    """Every bundled pin but MLX's: its markers pull it on this platform exactly where the zip bundles it.
+
+    A ``pip install`` of our wheel (``[project].dependencies``) or of an extra of
+    ``BUNDLED_EXTRAS`` (``mlx3d-splat[poses]``) with this platform's markers,
+    against ``PURE_PYTHON`` (every platform) and the platforms ``BINARY_WHEEL_TAGS``
+    names for the package.
+    """
+    requirement = _requirement_class()
+    if requirement is None:
+        log("  (packaging is not installed: the markers check of the bundled pins is skipped)")
+        return
+    project = tomllib.loads(PYPROJECT.read_text())["project"]
+    optional = project.get("optional-dependencies", {})
+    sources = [("", project.get("dependencies", []))] + [(extra, optional.get(extra, [])) for extra in BUNDLED_EXTRAS]
+    pulled_here = []
+    for extra, requirements in sources:
+        what = f"{pins.own_name}[{extra}]" if extra else pins.own_name
+        for text in requirements:
+            req = requirement(text)
+            name = _normalise(req.name)
+            if name not in PURE_PYTHON and name not in BINARY_WHEEL_TAGS:
+                continue  # MLX (check_mlx_requirements) or provided by Blender
+            bundled = name in PURE_PYTHON or plat.name in BINARY_WHEEL_TAGS[name]
+            for python in pythons:
+                env = {**_marker_environment(plat, python), "extra": extra}
+                pulled = req.marker is None or req.marker.evaluate(env)
+                if pulled != bundled:
+                    raise PackagingError(
+                        f"on {plat.name} (Python {_fmt_py(python)}) `pip install {what}` "
+                        f"{'pulls' if pulled else 'does not pull'} {name} ({text!r} in {PYPROJECT.name}), but the "
+                        f"zip {'bundles' if bundled else 'does not bundle'} it: the markers and BINARY_WHEEL_TAGS "
+                        "in addon/package.py must name the same platforms"
+                    )
+            if req.marker is not None:
+                state = "pulled and bundled" if bundled else "neither pulled nor bundled"
+                pulled_here.append(f"{name} ({what}: {state})")
+    if pulled_here:
+        log(f"  markers on {plat.name}: {', '.join(pulled_here)}")
 
 
 # ------------------------------------------------------------------ our own wheel
@@ -967,8 +1052,9 @@ def build(platform_name: str | None = None, pythons=DEFAULT_PYTHONS, out_dir: Pa
 
     log(f"1/6 pins: {MANIFEST.name} for {platform_name}, Python {', '.join(map(_fmt_py, pythons))}")
     pins = read_pins()
+    here = {k: v for k, v in pins.pinned.items() if k not in BINARY_WHEEL_TAGS or platform_name in BINARY_WHEEL_TAGS[k]}
     log(f"  {pins.own_name} {pins.own_version}; bundled: "
-        + ", ".join(f"{k}=={v}" for k, v in sorted(pins.bundled.items())) + f", {plat.mlx_library}=={pins.bundled['mlx']}")
+        + ", ".join(f"{k}=={v}" for k, v in sorted(here.items())) + f", {plat.mlx_library}=={pins.bundled['mlx']}")
     if sync_manifest(pins, write=update_manifest):
         log(f"  {MANIFEST.name} platforms and wheels lists are up to date")
     wheels = expected_wheels(pins, [platform_name], pythons)
@@ -976,6 +1062,7 @@ def build(platform_name: str | None = None, pythons=DEFAULT_PYTHONS, out_dir: Pa
     log("2/6 third-party wheels")
     download_wheels(wheels, pythons)
     check_mlx_requirements(pins, plat, pythons)
+    check_bundled_markers(pins, plat, pythons)
 
     log("3/6 mlx3d_splat wheels")
     if not plat.compiled:

@@ -7,13 +7,16 @@ and are built only when missing) and checks each: Blender's validator accepts
 it, its manifest names exactly its platform and the wheels inside, and the
 wheels are one ``mlx`` per Python (3.11, 3.13), MLX's library wheel, ours
 (compiled with ``_core`` per Python on linux-x64, the pure-Python one with
-``raster_math.h`` elsewhere), ``pillow`` and ``zstandard`` per Python and ``plyfile``.
+``raster_math.h`` elsewhere), ``pillow`` and ``zstandard`` per Python and ``plyfile``,
+and ``pycolmap`` (the ``poses`` extra) per Python on every platform but
+linux-arm64, for which pycolmap publishes no wheels.
 
 The expected tags below are written out here, not taken from package.py, so a
 change there has to agree with what the registry publishes. The pure wheel is
 also installed with pip into an empty folder and imported in a clean
 interpreter, and pip's resolver (with each platform's environment markers) must
-pull exactly mlx and its library wheel from our wheel's Requires-Dist.
+pull exactly mlx and its library wheel from our wheel's Requires-Dist, and
+pycolmap's wheel for the platform from ``[poses]`` where the zip bundles it.
 
 Installing the linux-x64 zip into Blender and using it is
 ``tests/blender/test_extension_install.py``'s part.
@@ -41,14 +44,15 @@ PYTHONS = ("cp311", "cp313")
 HEADER = ROOT / "mlx3d" / "csrc" / "raster_math.h"
 
 # Per Blender platform: the platform tag of mlx 0.32.4's wheels, MLX's library
-# wheel there, pillow 13.0.0's and zstandard 0.25.0's tags, the tags pip may pick for that platform, and
-# its environment markers.
+# wheel there, pillow 13.0.0's, zstandard 0.25.0's and pycolmap 4.2.1's tags (None: pycolmap
+# publishes no wheel there), the tags pip may pick for that platform, and its environment markers.
 EXPECTED = {
     "linux-x64": {
         "mlx": "manylinux_2_35_x86_64",
         "library": "mlx_cpu",
         "pillow": "manylinux_2_27_x86_64.manylinux_2_28_x86_64",
         "zstandard": "manylinux2014_x86_64.manylinux_2_17_x86_64",
+        "pycolmap": "manylinux_2_28_x86_64",
         "pip_tags": ("manylinux_2_35_x86_64", "manylinux_2_28_x86_64", "manylinux_2_17_x86_64"),
         "markers": {"sys_platform": "linux", "platform_system": "Linux", "platform_machine": "x86_64",
                     "os_name": "posix"},
@@ -58,6 +62,7 @@ EXPECTED = {
         "library": "mlx_metal",
         "pillow": "macosx_11_0_arm64",
         "zstandard": "macosx_11_0_arm64",
+        "pycolmap": "macosx_14_0_arm64",
         "pip_tags": ("macosx_14_0_arm64",),
         "markers": {"sys_platform": "darwin", "platform_system": "Darwin", "platform_machine": "arm64",
                     "os_name": "posix"},
@@ -67,6 +72,7 @@ EXPECTED = {
         "library": "mlx_cpu",
         "pillow": "win_amd64",
         "zstandard": "win_amd64",
+        "pycolmap": "win_amd64",
         "pip_tags": ("win_amd64",),
         "markers": {"sys_platform": "win32", "platform_system": "Windows", "platform_machine": "AMD64",
                     "os_name": "nt"},
@@ -76,6 +82,7 @@ EXPECTED = {
         "library": "mlx_cpu",
         "pillow": "manylinux_2_27_aarch64.manylinux_2_28_aarch64",
         "zstandard": "manylinux2014_aarch64.manylinux_2_17_aarch64",
+        "pycolmap": None,
         "pip_tags": ("manylinux_2_35_aarch64", "manylinux_2_28_aarch64", "manylinux_2_17_aarch64"),
         "markers": {"sys_platform": "linux", "platform_system": "Linux", "platform_machine": "aarch64",
                     "os_name": "posix"},
@@ -146,6 +153,8 @@ def expected_wheels(pins, platform):
         names.add(f"mlx-{mlx}-{py}-{py}-{e['mlx']}.whl")
         names.add(f"pillow-{pins.bundled['pillow']}-{py}-{py}-{e['pillow']}.whl")
         names.add(f"zstandard-{pins.bundled['zstandard']}-{py}-{py}-{e['zstandard']}.whl")
+        if e["pycolmap"]:
+            names.add(f"pycolmap-{pins.extras['pycolmap']}-{py}-{py}-{e['pycolmap']}.whl")
         if platform == "linux-x64":
             names.add(f"{own}-{py}-{py}-linux_x86_64.whl")
     if platform != "linux-x64":
@@ -198,6 +207,34 @@ def test_one_mlx_and_one_of_our_wheels_per_python(platform, zips, pins):
 
 
 @pytest.mark.parametrize("platform", PLATFORMS)
+def test_pycolmap_per_python_where_it_has_wheels(platform, zips, pins):
+    """One pycolmap wheel per Python, tagged (its own WHEEL file) for the platform; none on linux-arm64."""
+    result = zips(platform)
+    with zipfile.ZipFile(result.zip_path) as zf:
+        manifest_text = zf.read("blender_manifest.toml").decode()
+    wheels = [w for w in result.wheels if w.startswith("pycolmap-")]
+    tag = EXPECTED[platform]["pycolmap"]
+    if tag is None:
+        assert wheels == [] and "pycolmap" not in manifest_text.lower(), (wheels, manifest_text)
+        return
+    version = pins.extras["pycolmap"]
+    assert sorted(wheels) == [f"pycolmap-{version}-{py}-{py}-{tag}.whl" for py in PYTHONS]
+    assert [w for w in tomllib.loads(manifest_text)["wheels"] if "pycolmap" in w] == [f"./wheels/{w}" for w in wheels]
+    for name, py in zip(sorted(wheels), PYTHONS):
+        inner = nested_wheel(result.zip_path, name)
+        dist_info = f"pycolmap-{version}.dist-info"
+        tags = [line.removeprefix("Tag: ") for line in inner.read(f"{dist_info}/WHEEL").decode().splitlines()
+                if line.startswith("Tag: ")]
+        metadata = inner.read(f"{dist_info}/METADATA").decode()
+        assert tags == [f"{py}-{py}-{tag}"], (name, tags)
+        assert "Name: pycolmap\n" in metadata and f"Version: {version}\n" in metadata
+        assert any(n.startswith("pycolmap/") for n in inner.namelist())
+        # Its only dependency outside its extras is numpy, which Blender ships.
+        requires = [line for line in metadata.splitlines() if line.startswith("Requires-Dist: ")]
+        assert [r for r in requires if "extra ==" not in r] == ["Requires-Dist: numpy"], requires
+
+
+@pytest.mark.parametrize("platform", PLATFORMS)
 def test_core_only_on_linux_x64_and_raster_math_everywhere(platform, zips, pins):
     result = zips(platform)
     own = [w for w in result.wheels if w.startswith(f"{pins.own_name}-")]
@@ -237,6 +274,9 @@ def test_pure_wheel_metadata_and_record(pure_wheel, pins):
     requires = [line.removeprefix("Requires-Dist: ") for line in metadata.splitlines()
                 if line.startswith("Requires-Dist: ") and "extra ==" not in line]
     assert requires == project["dependencies"]
+    assert "Provides-Extra: poses\n" in metadata
+    poses = [line for line in metadata.splitlines() if line.startswith("Requires-Dist: pycolmap") and "poses" in line]
+    assert len(poses) == 1 and poses[0].startswith(f"Requires-Dist: pycolmap=={pins.extras['pycolmap']}; ("), poses
     assert "[console_scripts]\nmlx3d = mlx3d.cli:main" in entry_points
     # RECORD lists every file once, with its hash and size.
     assert sorted(row[0] for row in record) == sorted(contents)
@@ -337,7 +377,8 @@ sys.exit(main(sys.argv[2:]))
 
 @pytest.fixture(scope="module")
 def pip_resolutions(pure_wheel, package, tmp_path_factory):
-    """Platform -> {name: wheel file} that ``pip install`` of the pure wheel picks there (running Python's version).
+    """Platform -> {name: wheel file} that ``pip install`` of the pure wheel with its ``poses`` extra picks
+    there (running Python's version).
 
     pip evaluates environment markers for the machine it runs on, whatever
     ``--platform`` says, so each run gets the platform's markers patched in.
@@ -350,7 +391,7 @@ def pip_resolutions(pure_wheel, package, tmp_path_factory):
         cmd = [sys.executable, "-c", PIP_WITH_MARKERS, json.dumps(e["markers"]), "install", "--dry-run",
                "--ignore-installed", "--quiet", "--only-binary=:all:", "--python-version", version,
                "--target", str(tmp / f"target-{platform}"), "--report", str(tmp / f"{platform}.json"),
-               "--find-links", str(package.WHEELS_DIR), str(pure_wheel)]
+               "--find-links", str(package.WHEELS_DIR), f"{pure_wheel}[poses]"]
         for tag in e["pip_tags"]:
             cmd += ["--platform", tag]
         runs[platform] = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
@@ -376,6 +417,31 @@ def test_pip_install_of_the_pure_wheel_pulls_mlx_and_its_library(platform, pip_r
     assert {"numpy", "plyfile", "pillow", "zstandard", pins.own_name} <= set(got)
 
 
+@pytest.mark.parametrize("platform", PLATFORMS)
+def test_pip_install_of_poses_pulls_the_pycolmap_wheel_the_zip_bundles(platform, pip_resolutions, pins, zips):
+    """The markers of the poses pin pick, through pip, the very wheel the zip carries (and nothing on linux-arm64)."""
+    got = pip_resolutions[platform]
+    py = "cp{}{}".format(*sys.version_info[:2])
+    in_zip = [w for w in zips(platform).wheels if w.startswith("pycolmap-") and f"-{py}-" in w]
+    if EXPECTED[platform]["pycolmap"] is None:
+        assert "pycolmap" not in got and in_zip == [], (got, in_zip)
+    else:
+        assert [got["pycolmap"]] == in_zip, (got, in_zip)
+        assert got["pycolmap"].startswith(f"pycolmap-{pins.extras['pycolmap']}-{py}-{py}-")
+
+
+def test_pycolmap_publishes_no_linux_arm64_wheel(pins, tmp_path):
+    """Why linux-arm64's zip goes without: the registry has no pycolmap wheel for that platform."""
+    cmd = [sys.executable, "-m", "pip", "download", "--no-deps", "--only-binary=:all:", "--python-version", "3.11",
+           "--dest", str(tmp_path), f"pycolmap=={pins.extras['pycolmap']}"]
+    for tag in EXPECTED["linux-arm64"]["pip_tags"]:
+        cmd += ["--platform", tag]
+    result = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert result.returncode != 0 and "No matching distribution" in result.stdout + result.stderr, \
+        result.stdout[-2000:] + result.stderr[-2000:]
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_mlx_check_follows_markers_and_mlx_metadata(package, zips, pins):
     """package.py's own check: mlx's `cpu` extra adds mlx-cpu on Linux only, so Windows needs its explicit pin."""
     for platform in ("windows-x64", "linux-arm64", "macos-arm64"):
@@ -390,6 +456,30 @@ def test_mlx_check_follows_markers_and_mlx_metadata(package, zips, pins):
         assert package.mlx_distributions(plat, (3, 11), project["dependencies"], mlx_requires) == \
             {"mlx", EXPECTED[platform]["library"]}
         assert package.mlx_distributions(plat, (3, 11), [f"mlx[cpu]=={mlx}"], mlx_requires) == want
+
+
+def test_bundled_markers_check_follows_the_wheel_table(package, pins, monkeypatch):
+    """package.py stops when pycolmap's markers and the platforms it bundles pycolmap for disagree."""
+    tags = package.BINARY_WHEEL_TAGS["pycolmap"]
+    for platform in PLATFORMS:
+        package.check_bundled_markers(pins, package.PLATFORMS[platform], package.DEFAULT_PYTHONS)
+    monkeypatch.setitem(package.BINARY_WHEEL_TAGS, "pycolmap", {**tags, "linux-arm64": "manylinux_2_28_aarch64"})
+    with pytest.raises(package.PackagingError, match="linux-arm64.*does not pull pycolmap"):
+        package.check_bundled_markers(pins, package.PLATFORMS["linux-arm64"], package.DEFAULT_PYTHONS)
+    monkeypatch.setitem(package.BINARY_WHEEL_TAGS, "pycolmap", {k: v for k, v in tags.items() if k != "windows-x64"})
+    with pytest.raises(package.PackagingError, match="windows-x64.*pulls pycolmap"):
+        package.check_bundled_markers(pins, package.PLATFORMS["windows-x64"], package.DEFAULT_PYTHONS)
+
+
+def test_pycolmap_is_an_optional_pin_and_the_test_extra_has_the_same(pins):
+    """pycolmap is no dependency of `pip install mlx3d-splat`; ``[poses]`` and ``[test]`` pin it alike."""
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    assert not any(r.startswith("pycolmap") for r in project["dependencies"])
+    poses = [r for r in project["optional-dependencies"]["poses"] if r.startswith("pycolmap")]
+    test = [r for r in project["optional-dependencies"]["test"] if r.startswith("pycolmap")]
+    assert len(poses) == 1 and test == poses
+    assert "pycolmap" not in pins.bundled and set(pins.extras) == {"pycolmap"}
+    assert poses[0].startswith(f"pycolmap=={pins.extras['pycolmap']};")
 
 
 # ------------------------------------------------------------------ CLI
