@@ -1,4 +1,4 @@
-"""The ``mlx3d`` command line: inspect, convert, compact, clean, transform, merge, train, evaluate and benchmark.
+"""The ``mlx3d`` command line: inspect, convert, compact, clean, transform, merge, solve cameras, train, evaluate and benchmark.
 
 Every command reads any splat file format :func:`mlx3d.io.read_splats` reads
 (recognised by content) and writes the format its output's extension names.
@@ -253,6 +253,59 @@ def _background_arg(text: str):
     return text if text == "random" else BACKGROUNDS[text]
 
 
+class PosesProgress:
+    """Progress line for a camera solve: one :class:`ProgressLine` per stage (``progress(stage, done, total)``)."""
+
+    def __init__(self):
+        self.line = None
+
+    def __call__(self, stage: str, done: int, total: int) -> None:
+        if self.line is None or self.line.label != f"poses: {stage}":
+            self.line = ProgressLine(f"poses: {stage}")
+        self.line(done, total)
+
+
+def _solve(source: str, out: str, args):
+    """Solve the cameras of photos or a video into the dataset ``out`` and print what was solved."""
+    from .sfm import solve_capture
+
+    result = solve_capture(source, out, matching=args.matching, max_image_size=args.max_image_size,
+                           min_registered=args.min_registered, fps=args.fps, blur_ratio=args.blur_ratio,
+                           progress=PosesProgress(), verbose=args.verbose_sfm)
+    print(f"poses: {result.summary()}")
+    if result.unregistered:
+        print(f"poses: not placed, left out of the dataset: {', '.join(result.unregistered)}")
+    print(f"poses: wrote the dataset {out} ({sum(result.seconds.values()):.1f} s)")
+    return result
+
+
+def cmd_poses(args) -> None:
+    _solve(args.photos, args.out, args)
+
+
+def _train_data(args) -> str:
+    """The dataset to train on: ``args.data`` itself, or, for photos without poses or a video, the dataset
+    solved from them into ``--poses-out`` (default: ``<OUT stem>_poses`` beside OUT; reused when it holds one)."""
+    from .datasets import DatasetError, detect_format
+    from .sfm import is_video
+
+    if not is_video(args.data):
+        try:
+            detect_format(args.data)
+            return args.data
+        except DatasetError:
+            if not os.path.isdir(args.data):
+                raise
+    out = args.poses_out or os.path.splitext(os.path.abspath(args.out))[0] + "_poses"
+    if os.path.isdir(out) and any(os.scandir(out)):
+        detect_format(out)  # an earlier solve: a clear error when it holds something else
+        print(f"{args.data}: photos without poses; using the cameras solved earlier in {out}")
+        return out
+    print(f"{args.data}: photos without poses; solving the cameras into {out}")
+    _solve(args.data, out, args)
+    return out
+
+
 def _ranks(args):
     """The ranks of a distributed run (``--distributed``, or started by mlx.launch or mpirun), or None."""
     from .training.distributed import init, launched
@@ -285,9 +338,10 @@ def _train(args, ranks) -> None:
     from .training.evaluate import evaluate
     from .training.initial import initial_state
 
-    with step(f"loading {args.data}"):
-        dataset = load_dataset(args.data, factor=args.factor)
-    print(f"{args.data}: {len(dataset.train)} training and {len(dataset.test)} test views")
+    data = args.data if ranks is not None else _train_data(args)
+    with step(f"loading {data}"):
+        dataset = load_dataset(data, factor=args.factor)
+    print(f"{data}: {len(dataset.train)} training and {len(dataset.test)} test views")
     out_dir = os.path.dirname(os.path.abspath(args.out))
     config = TrainerConfig(
         method=args.method, steps=args.steps, max_gaussians=args.max_gaussians, background=args.background,
@@ -511,8 +565,37 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data", metavar="DATA_DIR", help="turn each normal towards the nearest camera of this dataset (default: each Gaussian's own, its thinnest axis)")
     reading(p)
 
-    p = add("train", cmd_train, "Train Gaussians on a dataset (COLMAP, NeRF-synthetic or nerfstudio folder) and write a splat file.")
-    p.add_argument("data", metavar="DATA_DIR")
+    def solving(p):
+        from .sfm import MATCHING
+        from .sfm.solve import MIN_REGISTERED
+        from .sfm.video import DEFAULT_BLUR_RATIO, DEFAULT_FPS
+
+        g = p.add_argument_group("solving cameras (photos without poses, or a video)")
+        g.add_argument("--matching", choices=MATCHING, default="auto",
+                       help="image pairs to match: every pair (exhaustive), neighbours in name order (sequential), or "
+                            "auto (default): exhaustive up to 100 photos, sequential for more and for videos")
+        g.add_argument("--max-image-size", type=_positive_int, default=1600, metavar="PX",
+                       help="find features on photos scaled to at most PX pixels on the longer side (default 1600)")
+        g.add_argument("--min-registered", type=float, default=MIN_REGISTERED, metavar="F",
+                       help=f"fail unless at least this fraction of the photos is placed (default {MIN_REGISTERED})")
+        g.add_argument("--fps", type=float, default=None, metavar="N",
+                       help=f"video: frames taken per second (the sharpest of each 1/N s; default {DEFAULT_FPS:g})")
+        g.add_argument("--blur-ratio", type=float, default=None, metavar="R",
+                       help=f"video: drop frames less sharp than R times the median (default {DEFAULT_BLUR_RATIO:g}; 0 keeps all)")
+        g.add_argument("--verbose-sfm", action="store_true", help="print COLMAP's own log")
+
+    p = add("poses", cmd_poses, "Solve the cameras of a folder of photos (or a video) with COLMAP (pycolmap) and write a "
+            "dataset that `mlx3d train` reads, set upright: +Z up, the scene at the origin.")
+    p.add_argument("photos", metavar="PHOTOS", help="a folder of photos, or a video file")
+    p.add_argument("--out", required=True, metavar="DIR", help="the dataset folder to write (new, or empty)")
+    solving(p)
+
+    p = add("train", cmd_train, "Train Gaussians on a dataset (COLMAP, NeRF-synthetic or nerfstudio folder), or on a "
+            "folder of photos or a video whose cameras are solved first (as `mlx3d poses`), and write a splat file.")
+    p.add_argument("data", metavar="DATA_DIR", help="a dataset folder, or photos without poses, or a video")
+    p.add_argument("--poses-out", metavar="DIR", help="where cameras solved from photos go (default: OUT's name + _poses, "
+                   "beside OUT; an earlier solve there is reused)")
+    solving(p)
     p.add_argument("--out", required=True, metavar="OUT")
     p.add_argument("--method", choices=METHODS, default="vanilla", help="vanilla, mcmc or 2dgs (surfels, for mesh extraction)")
     p.add_argument("--steps", type=int, default=30000)
