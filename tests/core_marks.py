@@ -3,6 +3,8 @@ threads and bits). They skip, with the reason, where the module is missing or tu
 (``MLX3D_NO_CORE``, as ``make test-pure`` runs the suite); everything else runs either way.
 ``too_slow_without_core``: the mark of the few tests whose long trainings would take most of CI's time on the
 pure MLX path (its trainer is the same code, which the other training tests run there).
+``runs_no_kernel``: the mark of test modules whose subject runs no kernel of ours (solving cameras with
+pycolmap, say): the pure path changes nothing there, so ``make test-pure`` skips them to keep CI's time.
 ``FAST``: the backend a test uses for "the fast renderer": 'cpu' (the C++ kernels), or 'mlx' where
 the compiled module is not available."""
 
@@ -17,4 +19,5 @@ too_slow_without_core = pytest.mark.skipif(
     reason="trains 700 steps on a 24,000-Gaussian outdoor scene, three times: over 25 minutes on the pure MLX path "
     "(the same trainer code, which the other training tests run there)",
 )
+runs_no_kernel = pytest.mark.skipif(not native.available(), reason="runs no kernel of ours: the pure MLX path changes nothing here")
 FAST = "cpu" if native.available() else "mlx"
