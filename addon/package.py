@@ -22,12 +22,14 @@ exactly the wheels inside. Per platform, for each Python (3.11 and 3.13):
 - ``linux-arm64``: ``mlx`` and ``mlx-cpu`` (``manylinux_2_35_aarch64``) and our
   pure-Python wheel: pure MLX on the CPU.
 
-All of them also bundle ``plyfile``, ``pillow`` and ``zstandard``, and all but
-``linux-arm64`` ``pycolmap`` (camera poses from photos, the ``poses`` extra; it
-publishes no Linux arm64 wheels, so that zip does without it); numpy is not
-bundled: Blender ships it. Every zip is built on any machine from the registry's
-wheels, except that the compiled linux-x64 wheels are built on a linux-x64
-machine (elsewhere they must already be in ``wheels/``).
+All of them also bundle ``plyfile``, ``pillow`` and ``zstandard``, and the
+``poses`` extra: ``av`` (PyAV, frames from videos) everywhere, one wheel per
+platform (``cp311-abi3``: stable ABI, it serves Python 3.11 and 3.13, so each
+zip carries it once), and ``pycolmap`` (camera poses from photos) everywhere but
+``linux-arm64`` (it publishes no Linux arm64 wheels, so that zip does without
+it). numpy is not bundled: Blender ships it. Every zip is built on any machine
+from the registry's wheels, except that the compiled linux-x64 wheels are built
+on a linux-x64 machine (elsewhere they must already be in ``wheels/``).
 
 Steps, each printed as it runs (once per platform):
 
@@ -35,7 +37,8 @@ Steps, each printed as it runs (once per platform):
    (``[project]``), and the exact pins of the bundled dependencies from its
    ``[project].dependencies`` (``mlx==…``, ``plyfile==…``, ``pillow==…``; a pin
    of MLX's library wheel, ``mlx-cpu==…`` for Windows, must equal mlx's) and
-   from the extras in ``BUNDLED_EXTRAS`` (``pycolmap==…`` of ``poses``).
+   from the extras in ``BUNDLED_EXTRAS`` (``pycolmap==…`` and ``av==…`` of
+   ``poses``).
    The ``platforms`` and ``wheels = [...]`` lists of ``blender_manifest.toml``
    are generated from ``PLATFORMS`` below and these pins (every platform,
    Python 3.11 and 3.13) and rewritten when they differ, so versions live in
@@ -45,15 +48,16 @@ Steps, each printed as it runs (once per platform):
    wheel per Python), its library wheel (``mlx-cpu`` on Linux and Windows,
    ``mlx-metal`` on macOS), the compiled dependencies of
    ``BINARY_WHEEL_TAGS`` (``pillow``, ``zstandard``, ``pycolmap``: one per
-   Python, on the platforms the table names) and ``plyfile``. Files already
+   Python, on the platforms the table names; ``av``, in ``STABLE_ABI``: one per
+   platform, for every Python) and ``plyfile``. Files already
    there are reused. Then check that a ``pip install`` of our wheel on that
    platform pulls exactly ``mlx`` and that library wheel: from the markers of
    ``[project].dependencies`` and the downloaded ``mlx`` wheel's own
    ``Requires-Dist`` (with the extras we ask for). mlx's ``cpu`` extra adds
    ``mlx-cpu`` on Linux only, while its Windows wheel needs ``mlx.dll`` from
    ``mlx-cpu``: hence the explicit ``mlx-cpu`` pin for Windows in pyproject.toml.
-   And that the markers of every other bundled pin (``pycolmap``'s in
-   ``poses``) pull it on exactly the platforms whose zip bundles it.
+   And that the markers of every other bundled pin (``pycolmap``'s and
+   ``av``'s in ``poses``) pull it on exactly the platforms whose zip bundles it.
 3. This project's wheel ``mlx3d_splat``:
 
    - linux-x64: the compiled wheel (``mlx3d`` and ``mlx3d._core``), built once
@@ -93,7 +97,8 @@ Steps, each printed as it runs (once per platform):
 Blender 4.5 LTS and 5.0 embed Python 3.11, Blender 5.1+ Python 3.13, hence the
 default ``--python 3.11,3.13``. MLX publishes one wheel per Python version, so
 the extension ships one ``mlx`` wheel (and on linux-x64 one ``mlx3d_splat``
-wheel) per version; Blender installs the matching ones into
+wheel) per version, and one wheel of a stable-ABI package (``STABLE_ABI``:
+``av``, ``cp311-abi3``) for both; Blender installs the matching ones into
 ``<user resources>/extensions/.local/lib/python3.X/site-packages``, where
 ``mlx3d/_core`` finds ``libmlx`` through its rpath ``$ORIGIN/../mlx/lib``.
 (A stable-ABI ``abi3`` build of ``_core`` is not used: nanobind keeps
@@ -159,11 +164,12 @@ BUNDLED_EXTRAS = ("poses",)
 #: must equal mlx's. Which one a platform bundles is ``Platform.mlx_library``.
 MLX_LIBRARIES = frozenset({"mlx_cpu", "mlx_metal"})
 
-#: Bundled compiled dependencies (one wheel per Python and platform): the platform
-#: part of their wheel file names as published for the pinned version, per Blender
-#: platform. ``pip download --platform`` gets the last tag of a compound one. A
-#: platform left out gets none of the package's wheels (the package publishes none
-#: there), and the markers of its pin must leave it out too (checked in step 2).
+#: Bundled compiled dependencies (one wheel per Python and platform, or per platform
+#: for those in ``STABLE_ABI``): the platform part of their wheel file names as
+#: published for the pinned version, per Blender platform. ``pip download
+#: --platform`` gets the last tag of a compound one. A platform left out gets none
+#: of the package's wheels (the package publishes none there), and the markers of
+#: its pin must leave it out too (checked in step 2).
 BINARY_WHEEL_TAGS = {
     "pillow": {
         "linux-x64": "manylinux_2_27_x86_64.manylinux_2_28_x86_64",
@@ -183,7 +189,21 @@ BINARY_WHEEL_TAGS = {
         "macos-arm64": "macosx_14_0_arm64",
         "windows-x64": "win_amd64",
     },
+    # The poses extra: frames from videos. Stable ABI (STABLE_ABI), FFmpeg inside.
+    "av": {
+        "linux-x64": "manylinux_2_28_x86_64",
+        "macos-arm64": "macosx_14_0_arm64",
+        "windows-x64": "win_amd64",
+        "linux-arm64": "manylinux_2_28_aarch64",
+    },
 }
+
+#: Packages of ``BINARY_WHEEL_TAGS`` whose wheels are built for CPython's stable ABI,
+#: with the oldest Python they are tagged for: ``NAME-VERSION-cp311-abi3-TAG.whl``,
+#: one wheel per platform that serves that Python and every later one. A zip
+#: carries it once, whatever its Pythons, and the manifest lists it once; a Python
+#: older than that one stops the build (the wheel would not serve it).
+STABLE_ABI = {"av": (3, 11)}
 
 #: Sources of our compiled wheel: a wheel older than any of these is rebuilt.
 SOURCE_INPUTS = ("pyproject.toml", "CMakeLists.txt", "mlx3d")
@@ -266,7 +286,7 @@ class Pins:
     own_version: str
     bundled: dict  # normalised distribution name -> exact version, of [project].dependencies
     build_requires: tuple[str, ...]
-    extras: dict  # the same, of the extras in BUNDLED_EXTRAS (pycolmap of poses)
+    extras: dict  # the same, of the extras in BUNDLED_EXTRAS (pycolmap and av of poses)
 
     @property
     def pinned(self) -> dict:
@@ -278,7 +298,7 @@ class Pins:
 class Wheel:
     filename: str
     requirement: str | None  # what ``pip download`` fetches; None for our own wheel
-    python: tuple[int, int] | None  # the Python it is for; None when any
+    python: tuple[int, int] | None  # the Python it is for; None when any (pure Python, stable ABI)
     platform: str | None  # Blender platform; None when any
     pip_platform: str | None = None  # ``pip download --platform`` tag; None when any
 
@@ -431,11 +451,24 @@ def expected_wheels(pins: Pins, platforms, pythons) -> list[Wheel]:
             add(Wheel(f"mlx-{mlx}-{tag}-{tag}-{plat.mlx_tag}.whl", f"mlx=={mlx}", python, plat.name, plat.mlx_tag))
             if plat.compiled:
                 add(Wheel(compiled_wheel_name(pins, plat, python), None, python, plat.name))
-            for name in sorted(BINARY_WHEEL_TAGS.keys() & pins.pinned.keys()):
+            for name in sorted((BINARY_WHEEL_TAGS.keys() & pins.pinned.keys()) - STABLE_ABI.keys()):
                 if plat.name not in BINARY_WHEEL_TAGS[name]:
                     continue  # no wheels for this platform: not bundled there
                 version, wheel_tag = pins.pinned[name], BINARY_WHEEL_TAGS[name][plat.name]
                 add(Wheel(f"{name}-{version}-{tag}-{tag}-{wheel_tag}.whl", f"{name}=={version}", python, plat.name, wheel_tag.split(".")[-1]))
+        for name in sorted(BINARY_WHEEL_TAGS.keys() & pins.pinned.keys() & STABLE_ABI.keys()):
+            if plat.name not in BINARY_WHEEL_TAGS[name]:
+                continue
+            oldest = STABLE_ABI[name]
+            if too_old := [p for p in pythons if p < oldest]:
+                raise PackagingError(
+                    f"{name}'s wheels (stable ABI, {_py_tag(oldest)}-abi3) need Python {_fmt_py(oldest)} or newer, "
+                    f"not {', '.join(map(_fmt_py, too_old))}: leave that version out with --python, or update "
+                    "STABLE_ABI in addon/package.py")
+            version, wheel_tag = pins.pinned[name], BINARY_WHEEL_TAGS[name][plat.name]
+            # One wheel for every Python: downloaded for the oldest one asked for (download_wheels).
+            add(Wheel(f"{name}-{version}-{_py_tag(oldest)}-abi3-{wheel_tag}.whl", f"{name}=={version}", None,
+                      plat.name, wheel_tag.split(".")[-1]))
         add(Wheel(f"{_normalise(plat.mlx_library)}-{mlx}-py3-none-{plat.mlx_tag}.whl",
                   f"{plat.mlx_library}=={mlx}", None, plat.name, plat.mlx_tag))
     for name in sorted(PURE_PYTHON & pins.pinned.keys()):
@@ -522,7 +555,8 @@ def download_wheels(wheels: list[Wheel], pythons) -> None:
                 if w.filename not in got:
                     raise PackagingError(
                         f"pip download {w.requirement} gave {got or 'nothing'}, not {w.filename}; "
-                        "if the package now publishes other platform tags, update PLATFORMS in addon/package.py"
+                        "if the package now publishes other tags, update PLATFORMS, BINARY_WHEEL_TAGS or "
+                        "STABLE_ABI in addon/package.py"
                     )
                 os.replace(Path(tmp) / w.filename, WHEELS_DIR / w.filename)
                 log(f"  got  {w.filename} ({_mb(WHEELS_DIR / w.filename)})")
@@ -616,9 +650,10 @@ def check_bundled_markers(pins: Pins, plat: Platform, pythons) -> None:
     """Every bundled pin but MLX's: its markers pull it on this platform exactly where the zip bundles it.
 
     A ``pip install`` of our wheel (``[project].dependencies``) or of an extra of
-    ``BUNDLED_EXTRAS`` (``mlx3d-splat[poses]``) with this platform's markers,
-    against ``PURE_PYTHON`` (every platform) and the platforms ``BINARY_WHEEL_TAGS``
-    names for the package.
+    ``BUNDLED_EXTRAS`` (``mlx3d-splat[poses]``) with this platform's markers, for
+    each Python, against ``PURE_PYTHON`` (every platform) and the platforms
+    ``BINARY_WHEEL_TAGS`` names for the package (a stable-ABI wheel of
+    ``STABLE_ABI``, one for all Pythons, likewise).
     """
     requirement = _requirement_class()
     if requirement is None:

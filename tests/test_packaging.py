@@ -8,15 +8,17 @@ it, its manifest names exactly its platform and the wheels inside, and the
 wheels are one ``mlx`` per Python (3.11, 3.13), MLX's library wheel, ours
 (compiled with ``_core`` per Python on linux-x64, the pure-Python one with
 ``raster_math.h`` elsewhere), ``pillow`` and ``zstandard`` per Python and ``plyfile``,
-and ``pycolmap`` (the ``poses`` extra) per Python on every platform but
-linux-arm64, for which pycolmap publishes no wheels.
+and the ``poses`` extra: ``pycolmap`` per Python on every platform but
+linux-arm64, for which pycolmap publishes no wheels, and ``av`` (PyAV) once on
+every platform, a stable-ABI wheel (``cp311-abi3``) that serves both Pythons.
 
 The expected tags below are written out here, not taken from package.py, so a
 change there has to agree with what the registry publishes. The pure wheel is
 also installed with pip into an empty folder and imported in a clean
 interpreter, and pip's resolver (with each platform's environment markers) must
 pull exactly mlx and its library wheel from our wheel's Requires-Dist, and
-pycolmap's wheel for the platform from ``[poses]`` where the zip bundles it.
+from ``[poses]`` pycolmap's wheel for the platform where the zip bundles it and
+the av wheel the zip carries.
 
 Installing the linux-x64 zip into Blender and using it is
 ``tests/blender/test_extension_install.py``'s part.
@@ -45,7 +47,8 @@ HEADER = ROOT / "mlx3d" / "csrc" / "raster_math.h"
 
 # Per Blender platform: the platform tag of mlx 0.32.4's wheels, MLX's library
 # wheel there, pillow 13.0.0's, zstandard 0.25.0's and pycolmap 4.2.1's tags (None: pycolmap
-# publishes no wheel there), the tags pip may pick for that platform, and its environment markers.
+# publishes no wheel there), av 18.1.0's (one cp311-abi3 wheel for every Python), the
+# tags pip may pick for that platform, and its environment markers.
 EXPECTED = {
     "linux-x64": {
         "mlx": "manylinux_2_35_x86_64",
@@ -53,6 +56,7 @@ EXPECTED = {
         "pillow": "manylinux_2_27_x86_64.manylinux_2_28_x86_64",
         "zstandard": "manylinux2014_x86_64.manylinux_2_17_x86_64",
         "pycolmap": "manylinux_2_28_x86_64",
+        "av": "manylinux_2_28_x86_64",
         "pip_tags": ("manylinux_2_35_x86_64", "manylinux_2_28_x86_64", "manylinux_2_17_x86_64"),
         "markers": {"sys_platform": "linux", "platform_system": "Linux", "platform_machine": "x86_64",
                     "os_name": "posix"},
@@ -63,6 +67,7 @@ EXPECTED = {
         "pillow": "macosx_11_0_arm64",
         "zstandard": "macosx_11_0_arm64",
         "pycolmap": "macosx_14_0_arm64",
+        "av": "macosx_14_0_arm64",
         "pip_tags": ("macosx_14_0_arm64",),
         "markers": {"sys_platform": "darwin", "platform_system": "Darwin", "platform_machine": "arm64",
                     "os_name": "posix"},
@@ -73,6 +78,7 @@ EXPECTED = {
         "pillow": "win_amd64",
         "zstandard": "win_amd64",
         "pycolmap": "win_amd64",
+        "av": "win_amd64",
         "pip_tags": ("win_amd64",),
         "markers": {"sys_platform": "win32", "platform_system": "Windows", "platform_machine": "AMD64",
                     "os_name": "nt"},
@@ -83,6 +89,7 @@ EXPECTED = {
         "pillow": "manylinux_2_27_aarch64.manylinux_2_28_aarch64",
         "zstandard": "manylinux2014_aarch64.manylinux_2_17_aarch64",
         "pycolmap": None,
+        "av": "manylinux_2_28_aarch64",
         "pip_tags": ("manylinux_2_35_aarch64", "manylinux_2_28_aarch64", "manylinux_2_17_aarch64"),
         "markers": {"sys_platform": "linux", "platform_system": "Linux", "platform_machine": "aarch64",
                     "os_name": "posix"},
@@ -148,7 +155,8 @@ def zips(package, blender_ext, tmp_path_factory):
 def expected_wheels(pins, platform):
     e = EXPECTED[platform]
     mlx, own = pins.bundled["mlx"], f"{pins.own_name}-{pins.own_version}"
-    names = {f"{e['library']}-{mlx}-py3-none-{e['mlx']}.whl", f"plyfile-{pins.bundled['plyfile']}-py3-none-any.whl"}
+    names = {f"{e['library']}-{mlx}-py3-none-{e['mlx']}.whl", f"plyfile-{pins.bundled['plyfile']}-py3-none-any.whl",
+             f"av-{pins.extras['av']}-cp311-abi3-{e['av']}.whl"}
     for py in PYTHONS:
         names.add(f"mlx-{mlx}-{py}-{py}-{e['mlx']}.whl")
         names.add(f"pillow-{pins.bundled['pillow']}-{py}-{py}-{e['pillow']}.whl")
@@ -234,6 +242,61 @@ def test_pycolmap_per_python_where_it_has_wheels(platform, zips, pins):
         assert [r for r in requires if "extra ==" not in r] == ["Requires-Dist: numpy"], requires
 
 
+def supported_tags(python: tuple[int, int], platforms) -> set[str]:
+    """The wheel tags CPython ``python`` accepts on these platform tags, as pip computes them."""
+    try:
+        from packaging import tags
+    except ImportError:
+        from pip._vendor.packaging import tags
+    return {str(tag) for tag in tags.cpython_tags(python, platforms=platforms)}
+
+
+@pytest.mark.parametrize("platform", PLATFORMS)
+def test_one_av_wheel_for_both_pythons(platform, zips, pins):
+    """One av wheel per zip, tagged (its own WHEEL file) ``cp311-abi3`` for the platform: CPython 3.11 and 3.13
+    both take it, 3.10 does not; the manifest lists it once."""
+    result = zips(platform)
+    with zipfile.ZipFile(result.zip_path) as zf:
+        manifest = tomllib.loads(zf.read("blender_manifest.toml").decode())
+    tag, version = EXPECTED[platform]["av"], pins.extras["av"]
+    wheels = [w for w in result.wheels if w.startswith("av-")]
+    assert wheels == [f"av-{version}-cp311-abi3-{tag}.whl"], wheels
+    assert [w for w in manifest["wheels"] if "/av-" in w] == [f"./wheels/{wheels[0]}"]
+    inner = nested_wheel(result.zip_path, wheels[0])
+    dist_info = f"av-{version}.dist-info"
+    tags = [line.removeprefix("Tag: ") for line in inner.read(f"{dist_info}/WHEEL").decode().splitlines()
+            if line.startswith("Tag: ")]
+    assert tags == [f"cp311-abi3-{tag}"], tags
+    pip_tags = EXPECTED[platform]["pip_tags"]
+    assert set(tags) <= supported_tags((3, 11), pip_tags) and set(tags) <= supported_tags((3, 13), pip_tags)
+    assert not set(tags) & supported_tags((3, 10), pip_tags)
+    # Its compiled modules are stable-ABI builds: none is named for one Python version.
+    files = inner.namelist()
+    modules = [f for f in files if f.startswith("av/") and f.endswith((".so", ".pyd"))]
+    suffix = ".pyd" if platform == "windows-x64" else ".abi3.so"
+    assert modules and all(f.endswith(suffix) and "cpython-" not in f for f in modules), modules
+    # FFmpeg inside, no Python dependencies.
+    metadata = inner.read(f"{dist_info}/METADATA").decode().splitlines()  # CRLF in the Windows wheel
+    assert {"Name: av", f"Version: {version}", "Requires-Python: >=3.11"} <= set(metadata)
+    assert not [line for line in metadata if line.startswith("Requires-Dist: ")]
+    assert any("avcodec" in f for f in files), "no FFmpeg library in the av wheel"
+
+
+def test_stable_abi_wheel_once_whatever_the_pythons(package, pins):
+    """package.py's table: av's one wheel per platform for 3.11, 3.13 or both; none for a Python older than 3.11."""
+    assert package.STABLE_ABI == {"av": (3, 11)}
+    for pythons in (((3, 11),), ((3, 13),), ((3, 11), (3, 13))):
+        for platform in PLATFORMS:
+            names = [w.filename for w in package.expected_wheels(pins, [platform], pythons)]
+            assert [n for n in names if n.startswith("av-")] == \
+                [f"av-{pins.extras['av']}-cp311-abi3-{EXPECTED[platform]['av']}.whl"], (pythons, names)
+    every = [w for w in package.expected_wheels(pins, package.PLATFORMS, package.DEFAULT_PYTHONS)
+             if w.filename.startswith("av-")]
+    assert len(every) == len(PLATFORMS) and all(w.python is None for w in every)
+    with pytest.raises(package.PackagingError, match="av.*3.11 or newer"):
+        package.expected_wheels(pins, ["linux-x64"], ((3, 10), (3, 11)))
+
+
 @pytest.mark.parametrize("platform", PLATFORMS)
 def test_core_only_on_linux_x64_and_raster_math_everywhere(platform, zips, pins):
     result = zips(platform)
@@ -277,6 +340,7 @@ def test_pure_wheel_metadata_and_record(pure_wheel, pins):
     assert "Provides-Extra: poses\n" in metadata
     poses = [line for line in metadata.splitlines() if line.startswith("Requires-Dist: pycolmap") and "poses" in line]
     assert len(poses) == 1 and poses[0].startswith(f"Requires-Dist: pycolmap=={pins.extras['pycolmap']}; ("), poses
+    assert f"Requires-Dist: av=={pins.extras['av']}; extra == \"poses\"\n" in metadata
     assert "[console_scripts]\nmlx3d = mlx3d.cli:main" in entry_points
     # RECORD lists every file once, with its hash and size.
     assert sorted(row[0] for row in record) == sorted(contents)
@@ -430,6 +494,15 @@ def test_pip_install_of_poses_pulls_the_pycolmap_wheel_the_zip_bundles(platform,
         assert got["pycolmap"].startswith(f"pycolmap-{pins.extras['pycolmap']}-{py}-{py}-")
 
 
+@pytest.mark.parametrize("platform", PLATFORMS)
+def test_pip_install_of_poses_pulls_the_av_wheel_the_zip_bundles(platform, pip_resolutions, pins, zips):
+    """pip picks from ``[poses]`` the very av wheel the zip carries, for the running Python (3.11 or 3.13)."""
+    got = pip_resolutions[platform]
+    in_zip = [w for w in zips(platform).wheels if w.startswith("av-")]
+    assert [got["av"]] == in_zip, (got, in_zip)
+    assert got["av"] == f"av-{pins.extras['av']}-cp311-abi3-{EXPECTED[platform]['av']}.whl"
+
+
 def test_pycolmap_publishes_no_linux_arm64_wheel(pins, tmp_path):
     """Why linux-arm64's zip goes without: the registry has no pycolmap wheel for that platform."""
     cmd = [sys.executable, "-m", "pip", "download", "--no-deps", "--only-binary=:all:", "--python-version", "3.11",
@@ -469,17 +542,30 @@ def test_bundled_markers_check_follows_the_wheel_table(package, pins, monkeypatc
     monkeypatch.setitem(package.BINARY_WHEEL_TAGS, "pycolmap", {k: v for k, v in tags.items() if k != "windows-x64"})
     with pytest.raises(package.PackagingError, match="windows-x64.*pulls pycolmap"):
         package.check_bundled_markers(pins, package.PLATFORMS["windows-x64"], package.DEFAULT_PYTHONS)
+    # av has no markers: every platform pulls it, so every platform must bundle it.
+    monkeypatch.setitem(package.BINARY_WHEEL_TAGS, "pycolmap", tags)
+    av_tags = package.BINARY_WHEEL_TAGS["av"]
+    monkeypatch.setitem(package.BINARY_WHEEL_TAGS, "av", {k: v for k, v in av_tags.items() if k != "linux-arm64"})
+    with pytest.raises(package.PackagingError, match="linux-arm64.*pulls av"):
+        package.check_bundled_markers(pins, package.PLATFORMS["linux-arm64"], package.DEFAULT_PYTHONS)
 
 
-def test_pycolmap_is_an_optional_pin_and_the_test_extra_has_the_same(pins):
-    """pycolmap is no dependency of `pip install mlx3d-splat`; ``[poses]`` and ``[test]`` pin it alike."""
+def test_poses_pins_are_optional_and_the_test_extra_has_the_same(pins):
+    """pycolmap and av are no dependencies of `pip install mlx3d-splat`; ``[poses]`` and ``[test]`` pin them
+    alike; mlx3d/sfm/video.py names av's pin in its message."""
+    from mlx3d.sfm.video import PYAV_PIN
+
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
-    assert not any(r.startswith("pycolmap") for r in project["dependencies"])
-    poses = [r for r in project["optional-dependencies"]["poses"] if r.startswith("pycolmap")]
-    test = [r for r in project["optional-dependencies"]["test"] if r.startswith("pycolmap")]
-    assert len(poses) == 1 and test == poses
-    assert "pycolmap" not in pins.bundled and set(pins.extras) == {"pycolmap"}
-    assert poses[0].startswith(f"pycolmap=={pins.extras['pycolmap']};")
+    optional = project["optional-dependencies"]
+    assert not {r.split("=")[0] for r in project["dependencies"]} & {"pycolmap", "av"}
+    assert set(pins.extras) == {"pycolmap", "av"} and not set(pins.extras) & set(pins.bundled)
+    for name in pins.extras:
+        poses = [r for r in optional["poses"] if r.split("=")[0] == name]
+        test = [r for r in optional["test"] if r.split("=")[0] == name]
+        assert len(poses) == 1 and test == poses, (name, poses, test)
+    pycolmap, av = (next(r for r in optional["poses"] if r.startswith(f"{n}==")) for n in ("pycolmap", "av"))
+    assert pycolmap.startswith(f"pycolmap=={pins.extras['pycolmap']};")
+    assert av == f"av=={pins.extras['av']}" == f"av=={PYAV_PIN}"  # no markers: wheels on every platform
 
 
 # ------------------------------------------------------------------ CLI
