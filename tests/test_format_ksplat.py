@@ -35,6 +35,10 @@ from mlx3d.io import SplatArrays, detect_format, read_splat_ply, read_splats
 from mlx3d.io.codec import SH_C0, sigmoid
 from mlx3d.io.ksplat import bucket_order, read_ksplat, sniff_ksplat, write_ksplat
 
+from core_marks import runs_no_kernel  # noqa: E402
+
+pytestmark = runs_no_kernel  # file formats, datasets and packaging: no kernel of ours runs here
+
 FIELDS = ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest")
 DC = 0.5 / 255 / SH_C0 + 1e-6     # half an 8-bit colour step
 ALPHA = 0.5 / 255 + 1e-7

@@ -25,6 +25,10 @@ from mlx3d.errors import NonFiniteError, SplatFormatError
 from mlx3d.io import SplatArrays, detect_format, read_splat_ply, read_splats, write_splat_ply, write_splats
 from mlx3d.io import sog
 
+from core_marks import runs_no_kernel  # noqa: E402
+
+pytestmark = runs_no_kernel  # file formats, datasets and packaging: no kernel of ours runs here
+
 PEER_SOG = DATA / "opensplat_500.sog"
 FIELDS = ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest")
 

@@ -13,6 +13,10 @@ from mlx3d.errors import NonFiniteError, SplatFormatError
 from mlx3d.io import SplatArrays, read_splat_ply, read_splats, write_splats
 from mlx3d.io.codec import SH_C0
 
+from core_marks import runs_no_kernel  # noqa: E402
+
+pytestmark = runs_no_kernel  # file formats, datasets and packaging: no kernel of ours runs here
+
 # The module's stated bounds (half an 8-bit step, in each field's own units).
 BOUNDS = dict(means=0.0, scales=1e-6, rotation=0.02, alpha=0.5 / 255 + 1e-7, sh_dc=0.5 / 255 / SH_C0 + 1e-6)
 

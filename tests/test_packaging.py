@@ -41,6 +41,10 @@ from pathlib import Path
 
 import pytest
 
+from core_marks import runs_no_kernel  # noqa: E402
+
+pytestmark = runs_no_kernel  # file formats, datasets and packaging: no kernel of ours runs here
+
 ROOT = Path(__file__).resolve().parents[1]
 PYTHONS = ("cp311", "cp313")
 HEADER = ROOT / "mlx3d" / "csrc" / "raster_math.h"

@@ -58,6 +58,10 @@ from mlx3d.errors import PlyFormatError
 from mlx3d.io import SplatArrays, read_splat_ply, write_splat_ply
 from mlx3d.io.mesh_ply import read_mesh_ply, write_mesh_ply
 
+from core_marks import runs_no_kernel  # noqa: E402
+
+pytestmark = runs_no_kernel  # file formats, datasets and packaging: no kernel of ours runs here
+
 # PLY_FUZZ_SEED=<int> draws a different set of cases (for longer exploratory runs).
 BASE_SEED = int(os.environ.get("PLY_FUZZ_SEED", "20240611"))
 CASE_TIME_LIMIT_S = 5.0     # one read (plus its round trip); normal cases take milliseconds
