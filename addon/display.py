@@ -50,8 +50,8 @@ def node_material(name: str, build):
     return mat
 
 
-def attribute_material(name: str, attribute_type: str = "GEOMETRY", transparent: bool = True):
-    """An emissive material coloured by ``splat_color`` (reused when it exists).
+def attribute_material(name: str, attribute_type: str = "GEOMETRY", transparent: bool = True, attribute: str = "splat_color"):
+    """An emissive material coloured by the colour attribute ``attribute`` (reused when it exists).
 
     attribute_type: where the shader reads the attribute ('GEOMETRY' for the
     points themselves, 'INSTANCER' for instances on them); transparent: mix
@@ -61,7 +61,7 @@ def attribute_material(name: str, attribute_type: str = "GEOMETRY", transparent:
     def build(nodes, links):
         attr = nodes.new("ShaderNodeAttribute")
         attr.attribute_type = attribute_type
-        attr.attribute_name = "splat_color"
+        attr.attribute_name = attribute
         emission = nodes.new("ShaderNodeEmission")
         out = nodes.new("ShaderNodeOutputMaterial")
         links.new(attr.outputs["Color"], emission.inputs["Color"])

@@ -14,7 +14,7 @@ from bpy_extras.io_utils import ExportHelper, ImportHelper
 
 from mlx3d.io import FORMATS
 
-from . import benchmark, capture, display, scene_render, train, workflows
+from . import benchmark, capture, display, photos, scene_render, train, workflows
 from .splat_object import is_splat_object
 
 # Folder settings that may start with "//" (relative to the .blend); Blender 5.0 asks for the flag.
@@ -443,7 +443,23 @@ class MLX3D_OT_capture_dataset(_ModalWork, bpy.types.Operator):
             self._end(context, cancelled=True)
 
 
-class MLX3D_OT_train(_ModalWork, bpy.types.Operator):
+class _TrainOptions:
+    """The training options of Train Splats, shared with Train from Photos, which hands them on."""
+
+    method: EnumProperty(name="Method", items=train.METHOD_ITEMS, default="vanilla")
+    steps: IntProperty(name="Steps", default=30000, min=1, description="Training steps (the schedules are laid out over them)")
+    max_gaussians: IntProperty(name="Max Gaussians", default=0, min=0, description="Cap on the number of Gaussians (0: the method's default: no cap for Vanilla and 2DGS; MCMC grows to one per pixel of a training image, at least twice its start)")
+    sh_degree: IntProperty(name="SH degree", default=3, min=0, max=3, description="Spherical-harmonics degree of the view-dependent colour")
+    background: EnumProperty(name="Background", items=train.BACKGROUND_ITEMS, default="black")
+    update_every: IntProperty(name="Update every", default=100, min=1, description="Training steps between updates of the splat object")
+
+    TRAIN_OPTIONS = ("method", "steps", "max_gaussians", "sh_degree", "background", "update_every")
+
+    def train_options(self) -> dict:
+        return {name: getattr(self, name) for name in self.TRAIN_OPTIONS}
+
+
+class MLX3D_OT_train(_TrainOptions, _ModalWork, bpy.types.Operator):
     """Train 3D Gaussians on a dataset folder (COLMAP, NeRF-synthetic or nerfstudio, e.g. a captured one); the splat object updates while it trains. Esc stops and keeps the result so far"""
 
     bl_idname = "mlx3d.train"
@@ -452,12 +468,6 @@ class MLX3D_OT_train(_ModalWork, bpy.types.Operator):
 
     directory: StringProperty(name="Dataset", subtype="DIR_PATH", default="", options=BLEND_RELATIVE_PATH,
                               description="Dataset folder (empty: the panel's dataset folder, where Capture Dataset writes)")
-    method: EnumProperty(name="Method", items=train.METHOD_ITEMS, default="vanilla")
-    steps: IntProperty(name="Steps", default=30000, min=1, description="Training steps (the schedules are laid out over them)")
-    max_gaussians: IntProperty(name="Max Gaussians", default=0, min=0, description="Cap on the number of Gaussians (0: the method's default: no cap for Vanilla and 2DGS; MCMC grows to one per pixel of a training image, at least twice its start)")
-    sh_degree: IntProperty(name="SH degree", default=3, min=0, max=3, description="Spherical-harmonics degree of the view-dependent colour")
-    background: EnumProperty(name="Background", items=train.BACKGROUND_ITEMS, default="black")
-    update_every: IntProperty(name="Update every", default=100, min=1, description="Training steps between updates of the splat object")
 
     TICK_SECONDS = 0.15  # training time per timer tick, so Blender stays responsive
 
@@ -559,6 +569,116 @@ class MLX3D_OT_train(_ModalWork, bpy.types.Operator):
         # Blender ends the operator (a file is loaded, the window closes): stop without touching the scene,
         # whose object holds the last update.
         if self._session is not None:
+            self._stop(context)
+
+
+class MLX3D_OT_train_from_photos(_TrainOptions, _ModalWork, bpy.types.Operator):
+    """Solve the cameras of a folder of photos or a video (structure from motion with pycolmap) into a dataset folder, add them as cameras and the sparse points as a point cloud in a new collection, then train splats on them as Train Splats does. Esc cancels the solve and changes nothing"""
+
+    bl_idname = "mlx3d.train_from_photos"
+    bl_label = "Train from Photos"
+    bl_options = {"UNDO"}  # no redo panel: it would solve and train again
+
+    source: StringProperty(name="Photos", subtype="FILE_PATH", default="", options=BLEND_RELATIVE_PATH,
+                           description="A folder of photos (or any photo in it), or a video file")
+    directory: StringProperty(name="Dataset folder", subtype="DIR_PATH", default="", options=BLEND_RELATIVE_PATH,
+                              description="Where the solved dataset is written: a new or empty folder (empty: <photos>_dataset next to the .blend file, or in the temporary folder)")
+    matching: EnumProperty(name="Matching", items=photos.MATCHING_ITEMS, default="auto", description="Which pairs of photos are matched")
+    max_image_size: IntProperty(name="Max image size", default=1600, min=64, description="Features are found on photos scaled to at most this many pixels on their longer side")
+    fps: FloatProperty(name="Video fps", default=0.0, min=0.0, description="Video: frames taken per second, the sharpest of each interval (0: the default, 2)")
+    train: BoolProperty(name="Train", default=True, description="Train splats on the solved cameras (off: only solve them and add them to the scene)")
+
+    @classmethod
+    def poll(cls, context):
+        return context.scene is not None
+
+    def _new_job(self):
+        if not self.source:
+            raise photos.PosesError("choose a folder of photos (or one photo in it) or a video file")
+        source = bpy.path.abspath(self.source)
+        out = bpy.path.abspath(self.directory) if self.directory else photos.default_dataset_folder(source, bpy.data.filepath)
+        return photos.PhotoSolve(source, out, fps=self.fps or None, matching=self.matching, max_image_size=self.max_image_size)
+
+    def _cancelled(self, job):
+        self.report({"INFO"}, f"solving the cameras of '{job.name}' was cancelled; nothing was added or written")
+        return {"CANCELLED"}
+
+    def _add_and_train(self, context, job, invoke: bool):
+        """The solved cameras and points into the scene, then Train Splats on the dataset (its own modal run when invoked)."""
+        try:
+            _, _, _, messages = photos.add_solved(job.out, name=job.name, parent=context.collection, scene=context.scene)
+        except (ValueError, OSError, RuntimeError) as exc:
+            self.report({"ERROR"}, f"{exc} (the solved dataset is in {job.out})")
+            return {"CANCELLED"}
+        _report_all(self, job.messages() + messages)
+        if self.train:
+            try:
+                bpy.ops.mlx3d.train("INVOKE_DEFAULT" if invoke else "EXEC_DEFAULT", directory=str(job.out), **self.train_options())
+            except RuntimeError as exc:  # Train Splats reported an error: the cameras stay, the dataset is on disk
+                self.report({"ERROR"}, f"training on {job.out} did not start: {exc}")
+        return {"FINISHED"}
+
+    def execute(self, context):
+        if context.mode != "OBJECT":
+            bpy.ops.object.mode_set(mode="OBJECT")
+        try:
+            job = self._new_job()
+            with _Progress(context) as progress:
+                job.run(progress=lambda stage, done, total: progress(int(1000 * job.fraction()), 1000))
+        except KeyboardInterrupt:
+            return self._cancelled(job)
+        except (ValueError, OSError, RuntimeError) as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        return self._add_and_train(context, job, invoke=False)
+
+    def invoke(self, context, event):
+        if context.window is None or bpy.app.background:  # no event loop: solve (and train) to the end now
+            return self.execute(context)
+        if context.mode != "OBJECT":
+            bpy.ops.object.mode_set(mode="OBJECT")
+        try:
+            self._session = self._new_job()
+            self._session.start()
+        except (ValueError, OSError, RuntimeError) as exc:
+            self._session = None
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        return self._start_modal(context, 1000, self._text())
+
+    def _text(self):
+        job = self._session
+        return f"Solving the cameras of '{job.name}': {job.status()} (Esc to cancel)"
+
+    def _escape(self, context):
+        job = self._session
+        job.cancel()
+        job.wait()  # pycolmap stops within about a second; the solve then removes its scratch folder
+        job.discard()  # solved just before Esc: the dataset goes too
+        self._stop(context)
+        return self._cancelled(job)
+
+    def _tick(self, context):
+        job = self._session
+        if job.running:
+            context.window_manager.progress_update(int(1000 * job.fraction()))
+            self._header(self._text())
+            return {"RUNNING_MODAL"}
+        self._stop(context)
+        if job.cancelled:
+            return self._cancelled(job)
+        if job.error is not None:
+            self.report({"ERROR"}, str(job.error))
+            return {"CANCELLED"}
+        return self._add_and_train(context, job, invoke=True)
+
+    def cancel(self, context):
+        # Blender ends the operator (a file is loaded, the window closes): stop the solve, add nothing.
+        if self._session is not None:
+            job = self._session
+            job.cancel()
+            job.wait()
+            job.discard()
             self._stop(context)
 
 
@@ -877,6 +997,7 @@ CLASSES = (
     MLX3D_OT_render_animation,
     MLX3D_OT_capture_dataset,
     MLX3D_OT_train,
+    MLX3D_OT_train_from_photos,
     MLX3D_OT_extract_mesh,
     MLX3D_OT_benchmark,
     MLX3D_FH_gaussian_splat_ply,

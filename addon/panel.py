@@ -5,7 +5,7 @@ from __future__ import annotations
 import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty
 
-from . import display, operators, train, workflows
+from . import display, operators, photos, train, workflows
 from .splat_object import is_splat_object
 
 
@@ -42,6 +42,12 @@ class MLX3D_PG_settings(bpy.types.PropertyGroup):
     train_sh_degree: IntProperty(name="SH degree", default=3, min=0, max=3, description="Spherical-harmonics degree of the view-dependent colour")
     train_background: EnumProperty(name="Background", items=train.BACKGROUND_ITEMS, default="black")
     train_update_every: IntProperty(name="Update every", default=100, min=1, description="Training steps between updates of the splat object")
+    photos_source: bpy.props.StringProperty(name="Photos", subtype="FILE_PATH", default="", options=operators.BLEND_RELATIVE_PATH,
+                                            description="A folder of photos (or any photo in it), or a video file")
+    photos_dir: bpy.props.StringProperty(name="Dataset folder", subtype="DIR_PATH", default="", options=operators.BLEND_RELATIVE_PATH,
+                                         description="Where the solved dataset is written: a new or empty folder (empty: <photos>_dataset next to the .blend file, or in the temporary folder)")
+    photos_matching: EnumProperty(name="Matching", items=photos.MATCHING_ITEMS, default="auto", description="Which pairs of photos are matched")
+    photos_fps: FloatProperty(name="Video fps", default=0.0, min=0.0, description="Video: frames taken per second, the sharpest of each interval (0: the default, 2)")
     bench_dir: bpy.props.StringProperty(name="Folder", subtype="DIR_PATH", default="", options=operators.BLEND_RELATIVE_PATH,
                                         description="Output folder of the benchmark report (empty: mlx3d_accuracy next to the .blend file, or in the temporary folder)")
     bench_full: BoolProperty(name="Full run", default=False, description="The full benchmark (under an hour on 2 cores) instead of the quick one (a few minutes)")
@@ -218,6 +224,27 @@ def _planned_stages(scene, settings) -> tuple:
     return _plan_cache[key]
 
 
+class VIEW3D_PT_mlx3d_photos(_SplatsSubpanel, bpy.types.Panel):
+    """Solve the cameras of your own photos (or a video), then train on them"""
+
+    bl_label = "Train from Photos"
+
+    def draw(self, context):
+        settings = context.scene.mlx3d_splats
+        col = self.layout.column(align=True)
+        col.prop(settings, "photos_source")
+        col.prop(settings, "photos_dir")
+        col.prop(settings, "photos_matching")
+        col.prop(settings, "photos_fps")
+        col.label(text="Trains with the Train panel's settings")
+        row = col.row()
+        row.enabled = bool(settings.photos_source)
+        op = row.operator(operators.MLX3D_OT_train_from_photos.bl_idname, icon="OUTLINER_OB_CAMERA")
+        op.source, op.directory, op.matching, op.fps = settings.photos_source, settings.photos_dir, settings.photos_matching, settings.photos_fps
+        op.method, op.steps, op.max_gaussians = settings.train_method, settings.train_steps, settings.train_max_gaussians
+        op.sh_degree, op.background, op.update_every = settings.train_sh_degree, settings.train_background, settings.train_update_every
+
+
 class VIEW3D_PT_mlx3d_benchmark(_SplatsSubpanel, bpy.types.Panel):
     """Measure what accuracy costs in time and memory on this machine"""
 
@@ -229,4 +256,4 @@ class VIEW3D_PT_mlx3d_benchmark(_SplatsSubpanel, bpy.types.Panel):
                  {"directory": "bench_dir", "full": "bench_full"})
 
 
-CLASSES = (MLX3D_PG_settings, VIEW3D_PT_mlx3d_splats, VIEW3D_PT_mlx3d_train, VIEW3D_PT_mlx3d_benchmark)
+CLASSES = (MLX3D_PG_settings, VIEW3D_PT_mlx3d_splats, VIEW3D_PT_mlx3d_train, VIEW3D_PT_mlx3d_photos, VIEW3D_PT_mlx3d_benchmark)

@@ -314,20 +314,20 @@ def _attribute_for(name: str, values: np.ndarray) -> tuple[str, np.ndarray, str 
     raise SplatObjectError(f"property '{name}' has unsupported type {values.dtype}")
 
 
-def new_pointcloud(name: str, arrays: SplatArrays) -> tuple["bpy.types.PointCloud", list[str]]:
-    """A new point cloud data-block holding ``arrays`` in the splat layout, and warnings."""
-    arrays.validate()
-    clash = [k for k in arrays.extra if L.reserved(k) or k in L.LEGACY_RAW or L.LEGACY_REST.match(k)]
-    if clash:
-        raise SplatObjectError(f"extra properties {clash} clash with splat attribute names")
-    n = arrays.count
+def pointcloud_from_positions(name: str, positions) -> "bpy.types.PointCloud":
+    """A new point cloud data-block with these (N, 3) positions and no other attribute.
+
+    Made from a mesh with Blender's own conversion, as every splat object is,
+    so it behaves the same on every supported version; nothing else is left
+    behind."""
+    positions = np.ascontiguousarray(positions, np.float32).reshape(-1, 3)
     mesh = bpy.data.meshes.new(name)
     carrier = bpy.data.objects.new(name, mesh)
     scene = bpy.context.scene
     scene.collection.objects.link(carrier)
     try:
-        mesh.vertices.add(n)
-        mesh.vertices.foreach_set("co", np.ascontiguousarray(arrays.means, np.float32).ravel())
+        mesh.vertices.add(len(positions))
+        mesh.vertices.foreach_set("co", positions.ravel())
         with bpy.context.temp_override(active_object=carrier, object=carrier, selected_objects=[carrier], selected_editable_objects=[carrier]):
             bpy.ops.object.convert(target="POINTCLOUD")
         if carrier.type != "POINTCLOUD":
@@ -339,6 +339,16 @@ def new_pointcloud(name: str, arrays: SplatArrays) -> tuple["bpy.types.PointClou
         bpy.data.objects.remove(carrier)
         if mesh.users == 0:
             bpy.data.meshes.remove(mesh)
+    return cloud
+
+
+def new_pointcloud(name: str, arrays: SplatArrays) -> tuple["bpy.types.PointCloud", list[str]]:
+    """A new point cloud data-block holding ``arrays`` in the splat layout, and warnings."""
+    arrays.validate()
+    clash = [k for k in arrays.extra if L.reserved(k) or k in L.LEGACY_RAW or L.LEGACY_REST.match(k)]
+    if clash:
+        raise SplatObjectError(f"extra properties {clash} clash with splat attribute names")
+    cloud = pointcloud_from_positions(name, arrays.means)
     try:
         warnings = write_attributes(cloud, arrays)
     except Exception:
