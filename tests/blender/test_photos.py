@@ -164,6 +164,21 @@ def test_bad_input_is_reported_and_changes_nothing(extension, clean_scene, photo
     assert [p.name for p in (tmp_path / "taken").iterdir()] == ["notes.txt"]
 
 
+def test_a_dataset_solved_just_before_a_cancel_is_removed(extension, photos, tmp_path):
+    """Esc can come after the solve finished but before the operator saw it: the dataset goes too, and a folder
+    that existed (empty) before stays, empty."""
+    folder, _ = photos
+    for out, existed in ((tmp_path / "new", False), (tmp_path / "was_empty", True)):
+        if existed:
+            out.mkdir()
+        job = extension.addon.photos.PhotoSolve(folder, out)
+        (out / "sparse").mkdir(parents=True)
+        (out / "poses.json").write_text("{}")
+        job.result = object()  # as if run() had returned
+        job.discard()
+        assert job.result is None and (out.is_dir() and not any(out.iterdir()) if existed else not out.exists())
+
+
 def test_the_default_dataset_folder_is_new(extension, tmp_path):
     photos_mod = extension.addon.photos
     blend = tmp_path / "scene.blend"
