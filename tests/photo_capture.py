@@ -61,22 +61,38 @@ def photo_orbit(folder, count: int = 24, size: int = 256, seed: int = 0, cameras
     return cameras
 
 
-def similarity_errors(solved, truth):
-    """Align solved cameras to true ones (Umeyama on the centres) and return
-    (max rotation error in degrees, max position error as a fraction of the true centres' diameter)."""
-    a = np.array([c.center for c in solved])
-    b = np.array([c.center for c in truth])
+def _umeyama(a: np.ndarray, b: np.ndarray):
+    """(scale, rotation, translation) minimising |s R a + t - b|^2 over rows."""
     ma, mb = a.mean(0), b.mean(0)
-    u, s, vt = np.linalg.svd((b - mb).T @ (a - ma))
+    u, sv, vt = np.linalg.svd((b - mb).T @ (a - ma))
     d = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
     rot = u @ d @ vt
-    scale = float((s * np.diag(d)).sum() / ((a - ma) ** 2).sum())
-    aligned = scale * (a - ma) @ rot.T + mb
+    scale = float((sv * np.diag(d)).sum() / ((a - ma) ** 2).sum())
+    return scale, rot, mb - scale * rot @ ma
+
+
+def similarity_errors(solved, truth):
+    """Align solved cameras to true ones by a similarity and return (max rotation error in degrees, max
+    position error as a fraction of the true centres' diameter).
+
+    The similarity is fitted (Umeyama) to each camera's centre and to points one spread of the centres along
+    its viewing and up axes, so that cameras on a line (a walk) fix the roll about it too."""
+    a = np.array([c.center for c in solved])
+    b = np.array([c.center for c in truth])
+    spread_a = float(np.sqrt(((a - a.mean(0)) ** 2).sum(1).mean()))
+    spread_b = float(np.sqrt(((b - b.mean(0)) ** 2).sum(1).mean()))
+
+    def marks(cameras, centres, spread):  # centre, and a point ahead and above each camera
+        return np.concatenate([centres, centres + spread * np.array([c.R[2] for c in cameras]),
+                               centres - spread * np.array([c.R[1] for c in cameras])])
+
+    scale, rot, shift = _umeyama(marks(solved, a, spread_a), marks(truth, b, spread_b))
+    aligned = scale * a @ rot.T + shift
     diameter = float(np.max(np.linalg.norm(b[:, None] - b[None], axis=-1)))
     position = float(np.max(np.linalg.norm(aligned - b, axis=1))) / diameter
     angles = []
     for cs, ct in zip(solved, truth):
-        # camera-to-world rotations: solved one mapped into the true frame
+        # camera-to-world rotations: the solved one mapped into the true frame, against the true one
         r = (rot @ cs.R.T).T @ ct.R.T
         angles.append(math.degrees(math.acos(np.clip((np.trace(r) - 1) / 2, -1, 1))))
     return max(angles), position
