@@ -1,12 +1,16 @@
 """``needs_core``: the mark of tests about the compiled module ``mlx3d._core`` itself (its kernels, their
 threads and bits). They skip, with the reason, where the module is missing or turned off
 (``MLX3D_NO_CORE``, as ``make test-pure`` runs the suite); everything else runs either way.
-``too_slow_without_core``: the mark of the few tests whose long trainings would take most of CI's time on the
-pure MLX path (its trainer is the same code, which the other training tests run there).
+``long_training``: the mark of the few tests that train long enough to assert a quality users rely on. They
+would take most of CI's time on the pure MLX path (its trainer is the same code, which the other training
+tests run there), and what they measure depends on the trainer and kernels, not on the Python or numpy
+version, so they run once among the whole-suite entries: ``make test-py313`` sets ``MLX3D_LONG_TRAININGS=0``.
 ``runs_no_kernel``: the mark of test modules whose subject runs no kernel of ours (solving cameras with
 pycolmap, say): the pure path changes nothing there, so ``make test-pure`` skips them to keep CI's time.
 ``FAST``: the backend a test uses for "the fast renderer": 'cpu' (the C++ kernels), or 'mlx' where
 the compiled module is not available."""
+
+import os
 
 import pytest
 
@@ -14,10 +18,10 @@ from mlx3d import native
 
 needs_core = pytest.mark.skipif(not native.available(), reason="tests mlx3d._core itself, which is not available here (not built, or MLX3D_NO_CORE is set)")
 
-too_slow_without_core = pytest.mark.skipif(
-    not native.available(),
-    reason="trains 700 steps on a 24,000-Gaussian outdoor scene, three times: over 25 minutes on the pure MLX path "
-    "(the same trainer code, which the other training tests run there)",
+long_training = pytest.mark.skipif(
+    not native.available() or os.environ.get("MLX3D_LONG_TRAININGS") == "0",
+    reason="a long training: over 25 minutes on the pure MLX path (the same trainer code, which the other training "
+    "tests run there); it runs once among the whole-suite entries (MLX3D_LONG_TRAININGS=0 here)",
 )
 runs_no_kernel = pytest.mark.skipif(not native.available(), reason="runs no kernel of ours: the pure MLX path changes nothing here")
 FAST = "cpu" if native.available() else "mlx"

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from core_marks import too_slow_without_core
+from core_marks import long_training
 from mlx3d.cameras import Camera
 from mlx3d.datasets import load_dataset
 from mlx3d.splatting import GaussianModel
@@ -74,7 +74,7 @@ def test_a_full_orbit_object_without_points_starts_from_a_cube_every_view_sees_i
     assert np.allclose(1 / (1 + np.exp(-np.array(mcmc.model.params["opacities"]))), 0.5)
 
 
-@too_slow_without_core
+@long_training
 def test_a_full_orbit_object_without_points_converges(tmp_path):
     """Vanilla from the default 100,000 random points: before the cap the cube stayed a wall of random colours
     (held-out 9.4 dB after 2,000 steps on the 96-pixel orbit of the design note); now the object forms."""

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from core_marks import too_slow_without_core
+from core_marks import long_training
 from mlx3d.cameras import Camera
 from mlx3d.datasets import load_dataset
 from mlx3d.report import scene
@@ -25,7 +25,7 @@ from mlx3d.training import GaussianTrainer, TrainerConfig
 from mlx3d.training.initial import initial_state
 from mlx3d.training.metrics import psnr
 
-pytestmark = too_slow_without_core
+pytestmark = long_training
 
 SIZE = 40
 STEPS = 700
