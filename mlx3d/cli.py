@@ -654,8 +654,10 @@ def main(argv=None) -> int:
         if (args.radius is None) != (args.min_neighbours is None):
             parser.error("clean: --radius and --min-neighbours go together")
     try:
-        if args.command in _OUTPUTS:
-            format_for_path(getattr(args, _OUTPUTS[args.command]), writable=True)
+        if args.command in _OUTPUTS:  # a wrong extension or an unmakeable folder fails before any work
+            output = getattr(args, _OUTPUTS[args.command])
+            format_for_path(output, writable=True)
+            os.makedirs(os.path.dirname(os.path.abspath(output)), exist_ok=True)
         with warnings.catch_warnings():
             # What was dropped or kept (extras a format cannot store, NaN rows) as one line each.
             warnings.showwarning = lambda message, *rest, **kw: print(

@@ -57,6 +57,13 @@ def test_compact(tmp_path):
     assert (np.array(out.opacities) >= 0.1).all()
 
 
+def test_outputs_go_into_new_folders(tmp_path):
+    # the folder is made before the work, so a long run (training) never ends unable to write its result
+    make_file(tmp_path / "a.ply")
+    assert main(["compact", str(tmp_path / "a.ply"), str(tmp_path / "new" / "deeper" / "b.ply"), "--max-gaussians", "10"]) == 0
+    assert len(GaussianModel.load_ply(tmp_path / "new" / "deeper" / "b.ply", sh_degree=None)) == 10
+
+
 def test_clean_statistical_and_radius(tmp_path, capsys):
     make_file(tmp_path / "a.ply", n=2000, floaters=10)
     assert main(["clean", str(tmp_path / "a.ply"), str(tmp_path / "b.ply"), "--stat-k", "10", "--stat-std", "3"]) == 0
