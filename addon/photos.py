@@ -150,6 +150,7 @@ class PhotoSolve:
             self.options["fps"] = fps
         self.stages = [s for s in STAGES if self.video or s != "frames"]
         self.stage, self.progress = None, (0, 1)
+        self._fraction = 0.0
         self.result = None
         self.error = None
         self._cancel = threading.Event()
@@ -200,11 +201,13 @@ class PhotoSolve:
         return not self.running
 
     def fraction(self) -> float:
-        """Overall progress in [0, 1]: each stage an equal share."""
-        if self.stage not in self.stages:
-            return 0.0
-        done, total = self.progress
-        return (self.stages.index(self.stage) + min(done / max(total, 1), 1.0)) / len(self.stages)
+        """Overall progress in [0, 1], each stage an equal share; it never goes back (the mapping may
+        start again from other image pairs, and its count with it), so a progress bar only moves on."""
+        if self.stage in self.stages:
+            done, total = self.progress
+            now = (self.stages.index(self.stage) + min(done / max(total, 1), 1.0)) / len(self.stages)
+            self._fraction = max(self._fraction, now)
+        return self._fraction
 
     def status(self) -> str:
         """The stage and its done/total, e.g. ``finding features 12/24``."""
