@@ -232,13 +232,16 @@ after a similarity alignment of the camera centres, the largest rotation error a
 - **arc**: a handheld arc at arm's length around `outdoor`'s four objects on textured ground; 40 photos over
   160° of azimuth, 3 units away, 22° ± 3° up, with jittered distance, height, aim and roll.
 - **walk**: walking past `open_points`' plaza and objects; 40 photos along a gently curved path 1.1 units high
-  with a step's bob, looking ahead of the objects as the walker passes them (forward and sideways motion).
+  with a step's bob, the camera turning to keep the objects in view as the walker passes them (forward and
+  sideways motion).
 - **distorted_exposure**: `arc`'s cameras as a phone gives them: Brown radial distortion k1 = −0.1 on every photo
   (resampled in numpy from a wider render), a gain of 0.55–1.6 and ±12 % white balance per photo (the ranges of the
   `exposure` scene) and a 3–5 pixel directional motion blur on every third photo. The photos training holds out
   (every 8th) keep the scene's exposure and sharpness, as in `exposure`; the distortion is on all of them.
-- **object_orbit**: `object_rgba`'s house on a full orbit: 40 photos on a two-turn spiral from 35° below to 65°
-  above it, transparent background (RGBA). No points are handed over: training starts from the sparse points
+- **object_orbit**: `object_rgba`'s house on a full orbit: 60 photos (480 × 360) on a two-turn spiral from 35°
+  below to 65° above it, 2.1 units away, transparent background (RGBA). Its bricks and roof tiles are
+  darkened by a noise pattern (weathering): the house as `bench/scenes.py` builds it repeats its textures
+  exactly, and only 6 of 40 (320 × 240), 13 of 60 (closer) and 18 of 60 (480 × 360) of its photos registered. No points are handed over: training starts from the sparse points
   the solve triangulated.
 - **lund**: 29 handheld street photos (1024 × 768, OpenSfM's example data, BSD-2), solved with `mlx3d poses`.
   No truth: registered photos and the reprojection error are what can be measured.
