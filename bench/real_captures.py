@@ -24,8 +24,9 @@ of the same scene, method, steps, schedule and factor), the worst held-out
 view of each milestone is written as a side-by-side PNG (photo | render) into
 ``--out`` and, scaled to at most 640 pixels wide, into
 ``docs/benchmarks/real_captures/``, and the page ``--markdown`` is written from
-all the rows. The page's hand-written part between ``<!-- notes -->`` and
-``<!-- /notes -->`` (what the worst views show) is kept when it is rewritten.
+all the rows. The page's hand-written parts between ``<!-- notes:NAME -->`` and
+``<!-- /notes:NAME -->`` (what the solves and the worst views show) are kept
+when it is rewritten; ``--page-only`` rewrites the page alone.
 """
 
 from __future__ import annotations
@@ -49,7 +50,7 @@ DOCS = os.path.join(ROOT, "docs", "benchmarks")
 PICTURES = os.path.join(DOCS, "real_captures")
 RESULTS = os.path.join(PICTURES, "results.json")
 PICTURE_WIDTH = 640
-NOTES_START, NOTES_END = "<!-- notes -->", "<!-- /notes -->"
+NOTES = ("captures", "views")  # hand-written parts of the page, kept when it is rewritten
 
 
 # ------------------------------------------------------------------ one run (child process)
@@ -146,14 +147,21 @@ def _captures_table(captures: dict) -> str:
         if "error" in r:
             lines.append(f"| {name} | {r['photos']} | solve failed: {r['error']} | | | | | | | | | |")
             continue
-        t = r.get("against_truth") or {}
-        focal = f"{r['focal']:.1f}" + (f" ({t['focal_true']:.1f})" if t else "")
-        k1 = f"{t['k1_solved']:.3f} ({t['k1_true']:g})" if t else ""
-        rot = f"{t['rotation_deg']:.2f}°" if t else "(no truth)"
-        pos = f"{t['position_pct']:.2f} %" if t else "(no truth)"
-        render = f"{r['render_seconds']:.0f} s" if r.get("render_seconds") else "(photos)"
-        lines.append(f"| {name} | {r['photos']} | {r['registered']} | {r['reprojection_error']:.2f} px | {r['points']:,} | "
-                     f"{r['camera_model']} | {focal} | {k1} | {rot} | {pos} | {render} | {r['solve_seconds']:.0f} s |")
+        solves = [(name, r)]
+        if r.get("auto_matching") and "error" not in r["auto_matching"]:
+            solves.append((f"{name}, every pair matched (not trained on)", {**r, **r["auto_matching"]}))
+        for label, r in solves:
+            t = r.get("against_truth") or {}
+            focal = f"{r['focal']:.1f}" + (f" ({t['focal_true']:.1f})" if t else "")
+            k1 = f"{t['k1_solved']:.3f} ({t['k1_true']:g})" if t else ""
+            rot = f"{t['rotation_deg']:.2f}°" if t else "(no truth)"
+            pos = f"{t['position_pct']:.2f} %" if t else "(no truth)"
+            render = ("(arc's renders)" if r.get("scene") == "arc's renders" else f"{r['render_seconds']:.0f} s") \
+                if r.get("render_seconds") else "(photos)"
+            matching = f", {r['matching']} matching" if label == name and r.get("matching") not in (None, "auto") else ""
+            lines.append(f"| {label}{matching} | {r['photos']} | {r['registered']} | {r['reprojection_error']:.2f} px | "
+                         f"{r['points']:,} | {r['camera_model']} | {focal} | {k1} | {rot} | {pos} | {render} | "
+                         f"{r['solve_seconds']:.0f} s |")
     return "\n".join(lines) + "\n"
 
 
@@ -195,17 +203,18 @@ def _pictures(rows) -> str:
     return "\n".join(out)
 
 
-DEFAULT_NOTES = "(No worst view described yet.)"
+DEFAULT_NOTES = "(Not described yet.)"
 
 
 def write_page(path, results) -> None:
-    notes = DEFAULT_NOTES
+    notes = {name: DEFAULT_NOTES for name in NOTES}
     if os.path.isfile(path):
         with open(path, encoding="utf-8") as f:
             text = f.read()
-        m = re.search(re.escape(NOTES_START) + r"\n(.*?)\n" + re.escape(NOTES_END), text, re.S)
-        if m:
-            notes = m.group(1).strip()
+        for name in NOTES:
+            m = re.search(re.escape(f"<!-- notes:{name} -->") + r"\n(.*?)\n" + re.escape(f"<!-- /notes:{name} -->"), text, re.S)
+            if m:
+                notes[name] = m.group(1).strip()
     rows, captures = results["rows"], results.get("captures", {})
     machines = sorted({r["machine"] for r in rows})
     page = f"""# Realistic captures: cameras from our own SfM
@@ -247,7 +256,9 @@ after a similarity alignment of the camera centres, the largest rotation error a
   No truth: registered photos and the reprojection error are what can be measured.
 
 {_captures_table(captures)}
-{results.get('captures_note', '')}
+<!-- notes:captures -->
+{notes['captures']}
+<!-- /notes:captures -->
 
 ## Training on them
 
@@ -263,9 +274,9 @@ Machine: {'; '.join(machines) if machines else '(no runs yet)'}.
 {_results_tables(rows)}
 ## The worst held-out views
 
-{NOTES_START}
-{notes}
-{NOTES_END}
+<!-- notes:views -->
+{notes['views']}
+<!-- /notes:views -->
 
 {_pictures(rows)}"""
     with open(path, "w", encoding="utf-8") as f:
