@@ -31,7 +31,9 @@ def orbit(tmp_path_factory):
     """24 photos of the test scene on two rings, their true cameras, and the dataset solved from them."""
     root = tmp_path_factory.mktemp("orbit")
     cameras = photo_orbit(root / "photos", COUNT, 256)
-    result = solve_poses(root / "photos", root / "data")
+    reports = []
+    result = solve_poses(root / "photos", root / "data", progress=lambda *report: reports.append(report))
+    result.reports = reports
     return root, cameras, result
 
 
@@ -52,6 +54,17 @@ def test_solve_places_every_photo_of_an_orbit_where_it_was_taken(orbit):
     assert result.focal == pytest.approx(128 / math.tan(math.radians(25)), rel=0.02)
     assert json.loads((root / "data" / "poses.json").read_text())["registered"] == names
     assert sorted(p.name for p in (root / "data" / "images").iterdir()) == names
+
+
+def test_progress_goes_forward_through_each_stage_to_its_end(orbit):
+    reports = orbit[2].reports
+    assert [stage for stage, _, _ in reports if stage != "mapping"] == sorted(
+        (stage for stage, _, _ in reports if stage != "mapping"), key=["photos", "features", "matching"].index)
+    for stage, total in (("photos", COUNT), ("features", COUNT), ("matching", COUNT * (COUNT - 1) // 2), ("mapping", COUNT)):
+        done = [d for s, d, t in reports if s == stage and t == total]
+        assert done and done[-1] == total and len(done) == len([r for r in reports if r[0] == stage])
+        if stage != "mapping":  # the mapper runs three times (its three starts), each from the beginning
+            assert done == sorted(done) and len(set(done)) >= 5
 
 
 def test_solved_capture_is_upright_centred_and_scaled(orbit):

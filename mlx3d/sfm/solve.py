@@ -54,7 +54,6 @@ import math
 import os
 import secrets
 import shutil
-import sqlite3
 import threading
 import time
 from dataclasses import asdict, dataclass, field
@@ -71,6 +70,8 @@ PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp")
 MATCHING = ("auto", "exhaustive", "sequential")
 #: ``auto`` matches every pair up to this many photos, neighbours in name order above it.
 EXHAUSTIVE_MAX = 100
+#: Features and matching run in this many parts, each a progress report (pycolmap reports none itself).
+PROGRESS_STEPS = 10
 #: Sequential matching: each photo is matched with this many next ones (and, quadratically, farther ones).
 SEQUENTIAL_OVERLAP = 15
 #: Pixels: distortion that moves no pixel more than this is written as a pinhole camera.
@@ -151,15 +152,26 @@ def choose_matching(matching: str, count: int, video: bool) -> str:
     return "sequential" if video or count > EXHAUSTIVE_MAX else "exhaustive"
 
 
-def _sequential_pairs(count: int, overlap: int) -> int:
-    """How many pairs COLMAP's sequential matching (quadratic overlap) visits: for progress only."""
+def image_pairs(names: list[str], kind: str) -> list[tuple[str, str]]:
+    """The photo pairs to match: every pair (``exhaustive``), or each photo with the next
+    :data:`SEQUENTIAL_OVERLAP` in name order and, quadratically, with photos 2, 4, 8, ... ahead
+    (``sequential``, as COLMAP's sequential matching with ``quadratic_overlap``)."""
+    count = len(names)
+    if kind == "exhaustive":
+        return [(names[i], names[j]) for i in range(count) for j in range(i + 1, count)]
     pairs = set()
     for i in range(count):
-        for k in range(overlap):
-            for j in (i + k + 1, i + 2 ** k):
-                if i < j < count:
+        for k in range(SEQUENTIAL_OVERLAP):
+            for j in (i + k + 1, i + 2 ** (k + 1)):
+                if j < count:
                     pairs.add((i, j))
-    return len(pairs)
+    return [(names[i], names[j]) for i, j in sorted(pairs)]
+
+
+def _chunks(items: list, count: int) -> list[list]:
+    """``items`` in about ``count`` consecutive runs (fewer when there are fewer items)."""
+    size = max(1, math.ceil(len(items) / count))
+    return [items[i:i + size] for i in range(0, len(items), size)]
 
 
 def _copy_photos(source: Path, names: list[str], images: Path, progress, should_stop) -> list[tuple[int, int]]:
@@ -193,29 +205,13 @@ def _copy_photos(source: Path, names: list[str], images: Path, progress, should_
     return sizes
 
 
-def _count_rows(database: Path, table: str) -> Callable[[], int]:
-    """A poll for progress: rows in ``table`` of the COLMAP database being written (0 while unreadable)."""
-    last = [0]
-
-    def poll() -> int:
-        try:
-            db = sqlite3.connect(database, timeout=0.05)  # COLMAP's database is in WAL mode: readers never block it
-            try:
-                last[0] = int(db.execute(f"SELECT COUNT(*) FROM {table}").fetchone()[0])
-            finally:
-                db.close()
-        except sqlite3.Error:
-            pass
-        return last[0]
-
-    return poll
-
-
-def _run_stage(pycolmap, stage: str, work: Callable, total: int, poll: Callable[[], int], progress, should_stop):
-    """Run ``work(token)`` in a thread; meanwhile report ``poll()`` as progress and cancel on request.
+def _run_stage(pycolmap, stage: str, work: Callable, done, total: int, progress, should_stop):
+    """Run ``work(token)`` in a thread; meanwhile report ``done`` (a number, or a callable polled) of
+    ``total`` as progress and cancel on request.
 
     Ctrl+C (KeyboardInterrupt in this thread) or ``should_stop()`` cancels pycolmap's work, waits for it to
-    stop and raises KeyboardInterrupt."""
+    stop and raises KeyboardInterrupt. pycolmap's database is never read meanwhile: it has its own SQLite,
+    and a second copy of SQLite on the same file in one process breaks its locks."""
     token = pycolmap.CancellationToken()
     outcome: dict = {}
 
@@ -229,11 +225,11 @@ def _run_stage(pycolmap, stage: str, work: Callable, total: int, poll: Callable[
     thread.start()
     try:
         while thread.is_alive():
-            thread.join(0.1)
             if should_stop is not None and should_stop():
                 token.cancel()
             if progress is not None:
-                progress(stage, min(poll(), total), total)
+                progress(stage, min(done() if callable(done) else done, total), total)
+            thread.join(0.1)
     except BaseException:
         token.cancel()
         thread.join()
@@ -242,8 +238,6 @@ def _run_stage(pycolmap, stage: str, work: Callable, total: int, poll: Callable[
         raise KeyboardInterrupt
     if "error" in outcome:
         raise outcome["error"]
-    if progress is not None:
-        progress(stage, total, total)
     return outcome.get("value")
 
 
@@ -330,6 +324,10 @@ def solve_poses(photos, out, *, matching: str = "auto", max_image_size: int = 16
         raise PosesError(f"min_registered must be a fraction in (0, 1], got {min_registered!r}")
     if int(max_image_size) < 64:
         raise PosesError(f"max_image_size must be at least 64 pixels, got {max_image_size!r}")
+    spaced = [n for n in names if any(ch.isspace() for ch in n)]
+    if spaced:  # COLMAP's lists of image pairs separate names by white space
+        raise PosesError(f"{source}: photo names with spaces cannot be matched by COLMAP; rename "
+                         f"{', '.join(spaced[:5])}{' ...' if len(spaced) > 5 else ''}")
     kind = choose_matching(matching, len(names), video)
 
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -350,28 +348,36 @@ def solve_poses(photos, out, *, matching: str = "auto", max_image_size: int = 16
         extraction = pycolmap.FeatureExtractionOptions()
         extraction.max_image_size = int(max_image_size)
         extraction.num_threads = os.cpu_count() or -1
-        camera_mode = pycolmap.CameraMode.SINGLE if len(set(sizes)) == 1 else pycolmap.CameraMode.AUTO
-        _run_stage(pycolmap, "features", lambda token: pycolmap.extract_features(
-            database, images, image_names=names, camera_mode=camera_mode, reader_options=reader,
-            extraction_options=extraction, device=pycolmap.Device.cpu, cancellation_token=token),
-            len(names), _count_rows(database, "keypoints"), progress, should_stop)
+        single = len(set(sizes)) == 1
+        done = 0
+        for chunk in _chunks(names, PROGRESS_STEPS):
+            if single and done:  # the first run made the one camera (id 1); the others use it
+                reader.existing_camera_id = 1
+            mode = pycolmap.CameraMode.SINGLE if single else pycolmap.CameraMode.AUTO
+            _run_stage(pycolmap, "features", lambda token: pycolmap.extract_features(
+                database, images, image_names=chunk, camera_mode=mode, reader_options=reader,
+                extraction_options=extraction, device=pycolmap.Device.cpu, cancellation_token=token),
+                done, len(names), progress, should_stop)
+            done += len(chunk)
+        if progress is not None:
+            progress("features", len(names), len(names))
         seconds["features"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
         verification = pycolmap.TwoViewGeometryOptions()
         verification.ransac.random_seed = seed  # the same photos give the same pairs, and so the same cameras
-        if kind == "exhaustive":
-            total = len(names) * (len(names) - 1) // 2
-            run = lambda token: pycolmap.match_exhaustive(database, verification_options=verification,  # noqa: E731
-                                                          device=pycolmap.Device.cpu, cancellation_token=token)
-        else:
-            pairing = pycolmap.SequentialPairingOptions()
-            pairing.overlap = SEQUENTIAL_OVERLAP
-            total = _sequential_pairs(len(names), SEQUENTIAL_OVERLAP)
-            run = lambda token: pycolmap.match_sequential(  # noqa: E731
+        pairs = image_pairs(names, kind)
+        pairing = pycolmap.ImportedPairingOptions()
+        pairing.match_list_path = str(scratch / "pairs.txt")
+        done = 0
+        for chunk in _chunks(pairs, PROGRESS_STEPS):
+            Path(pairing.match_list_path).write_text("".join(f"{a} {b}\n" for a, b in chunk), encoding="utf-8")
+            _run_stage(pycolmap, "matching", lambda token: pycolmap.match_image_pairs(
                 database, pairing_options=pairing, verification_options=verification, device=pycolmap.Device.cpu,
-                cancellation_token=token)
-        _run_stage(pycolmap, "matching", run, total, _count_rows(database, "two_view_geometries"), progress, should_stop)
+                cancellation_token=token), done, len(pairs), progress, should_stop)
+            done += len(chunk)
+        if progress is not None:
+            progress("matching", len(pairs), len(pairs))
         seconds["matching"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
@@ -383,11 +389,13 @@ def solve_poses(photos, out, *, matching: str = "auto", max_image_size: int = 16
             models = _run_stage(pycolmap, "mapping", lambda token: pycolmap.incremental_mapping(
                 database, images, attempt_dir, _mapping_options(pycolmap, seed, angle),
                 next_image_callback=lambda: registered.__setitem__(0, registered[0] + 1), cancellation_token=token),
-                len(names), lambda: min(registered[0] + 1, len(names)), progress, should_stop)
+                lambda: registered[0] + 1, len(names), progress, should_stop)
             for model in (models or {}).values():  # most photos placed, then the smallest reprojection error
                 error = float(model.compute_mean_reprojection_error())
                 if rec is None or (model.num_reg_images(), -error) > (rec.num_reg_images(), -rec_error):
                     rec, rec_error = model, error
+        if progress is not None:
+            progress("mapping", len(names), len(names))
         seconds["mapping"] = time.perf_counter() - t0
 
         done = set() if rec is None else {rec.image(i).name for i in rec.reg_image_ids()}

@@ -30,20 +30,6 @@ from mlx3d.datasets import load_dataset  # noqa: E402
 COUNT = 24
 
 
-@pytest.fixture(scope="module", autouse=True)
-def no_database_polls():
-    """The solve's progress polls count rows of COLMAP's database with Python's own sqlite3 while pycolmap,
-    which links another copy of SQLite, writes it: two SQLite copies on one database in one process, which
-    SQLite documents as unsafe. Here it aborts the process now and then ("SQLite error: database is locked",
-    thrown in a COLMAP thread; a bus error once), most often inside Blender. Until the solve counts another
-    way, these tests report 0 done within each stage (the stages and their ends are still reported)."""
-    import mlx3d.sfm.solve as solve
-
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(solve, "_count_rows", lambda database, table: (lambda: 0))
-        yield
-
-
 @pytest.fixture(scope="module")
 def photos(tmp_path_factory):
     """(folder of photos, their true cameras in name order)."""
