@@ -795,6 +795,28 @@ class Camera:
         p = _as_float(points_cam, "points_cam", 3)
         return _apply(self.camtoworld[:3], p[..., 0], p[..., 1], p[..., 2])
 
+    @property
+    def lens_limit(self) -> float:
+        """How far off-axis the lens model stays one-to-one: the largest squared normalised radius
+        ``(x/z)² + (y/z)²`` (``'opencv'``) or squared angle θ² in radians² (``'fisheye'``) up to which the
+        distorted radius still grows with the true one; ``inf`` for pinhole and orthographic cameras
+        and for coefficients that never fold.
+
+        Past it the polynomial turns back (a negative ``k1`` makes ``r (1 + k1 r²)`` fall from
+        ``r = 1 / sqrt(3 |k1|)``): a point far outside the picture lands inside it, mirrored. Tangential
+        terms are not counted (they are small where lenses are calibrated)."""
+        if self.model == "opencv":
+            k1, k2, _, _, k3 = self.dist
+            derivative = (7.0 * k3, 5.0 * k2, 3.0 * k1, 1.0)  # d[r (1 + k1 r² + k2 r⁴ + k3 r⁶)]/dr in u = r²
+        elif self.model == "fisheye":
+            k1, k2, k3, k4 = self.dist
+            derivative = (9.0 * k4, 7.0 * k3, 5.0 * k2, 3.0 * k1, 1.0)  # d theta_d / d theta in u = θ²
+        else:
+            return math.inf
+        roots = np.roots(np.trim_zeros(np.array(derivative, np.float64), "f"))
+        folds = [r.real for r in roots if abs(r.imag) < 1e-12 and r.real > 0]
+        return float(min(folds)) if folds else math.inf
+
     def camera_to_pixels(self, points_cam, eps=_Z_EPS):
         """Pixels of camera-space points: ``(uv (..., 2) pixels, depth (...,) = z_cam)``.
 

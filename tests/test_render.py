@@ -245,6 +245,31 @@ def test_ut_equals_ewa_for_small_gaussians_and_is_exact_for_orthographic():
         np.testing.assert_allclose(np.array(proj["conics"])[i], want, rtol=1e-4, atol=1e-5 * np.abs(want).max())
 
 
+def test_a_distorted_lens_does_not_fold_far_off_axis_gaussians_into_the_picture():
+    # A solved phone camera (k1 = -0.02): r (1 + k1 r^2) turns back at r = 1/sqrt(3 |k1|) = 4.1, so a Gaussian
+    # 80 degrees off-axis landed, mirrored, inside the picture and one straddling the fold spread over all of it
+    # (a veil of its colour over every view of a trained street capture).
+    k1 = -0.0198
+    lens = Camera(width=160, height=120, fx=180.0, fy=180.0, cx=80.0, cy=60.0, model="opencv", dist=(k1, 0, 0, 0, 0))
+    assert lens.lens_limit == pytest.approx(1 / (3 * abs(k1)))
+    # a backdrop Gaussian of a trained street capture that veiled a training view (in its camera's coordinates,
+    # 79 degrees off-axis), and one in view
+    means = mx.array([[-56.37, -6.4, 10.81], [0.0, 0.0, 4.0]], dtype=mx.float32)
+    quats = mx.array([[0.6383, 0.7223, 0.2578, 0.0657], [1.0, 0.0, 0.0, 0.0]], dtype=mx.float32)
+    scales = mx.array([[3.253, 6.497, 0.361], [0.05, 0.05, 0.05]], dtype=mx.float32)
+    proj = project_gaussians_ut(lens, means, quats, scales)
+    assert np.array(proj["radii"]).tolist() == [0, np.array(proj["radii"])[1]] and np.array(proj["radii"])[1] > 0
+    image = render_gaussians(lens, means, quats, scales, mx.array([1.0, 1.0]), colors=mx.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]))
+    rgb = np.array(image["image"])
+    assert rgb[..., 2].max() == 0.0 and rgb[60, 80, 0] > 0.5  # no blue veil; the red Gaussian in view is drawn
+    # within the limit the distorted projection is unchanged: a Gaussian 60 degrees off-axis still projects
+    side = project_gaussians_ut(lens, mx.array([[1.7, 0.0, 1.0]], dtype=mx.float32), quats[:1], mx.array([[0.01] * 3], dtype=mx.float32))
+    u = float(np.array(side["means2d"])[0, 0])
+    assert u == pytest.approx(180.0 * 1.7 * (1 + k1 * 1.7**2) + 80.0, rel=1e-5)
+    assert Camera(width=8, height=8, fx=8.0, fy=8.0, cx=4.0, cy=4.0).lens_limit == float("inf")
+    assert Camera(width=8, height=8, fx=8.0, fy=8.0, cx=4.0, cy=4.0, model="opencv", dist=(0.1, 0, 0, 0, 0)).lens_limit == float("inf")
+
+
 def test_antialias_compensation():
     cam = camera()
     s = scene(10, seed=14)

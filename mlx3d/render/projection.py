@@ -29,6 +29,7 @@ values as a dict, as the original mlx3D did: ``means2d``, ``conics``,
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import mlx.core as mx
@@ -207,7 +208,10 @@ def project_ut(camera, means, quats, scales, blur: float = 0.3, antialias: bool 
     """Unscented-transform projection through ``camera.camera_to_pixels`` (any camera model).
 
     Same arguments and result as ``project_ewa``. A Gaussian is culled
-    when any sigma point is nearer than ``camera.near``.
+    when any sigma point is nearer than ``camera.near`` or farther off-axis than
+    the lens model stays one-to-one (``Camera.lens_limit``): past that a distorted
+    lens folds far-away points back into the picture, and one Gaussian straddling
+    the fold spreads over all of it.
     """
     rot, trans = _camera_arrays(camera)
     p = means @ rot.T + trans
@@ -216,6 +220,12 @@ def project_ut(camera, means, quats, scales, blur: float = 0.3, antialias: bool 
     sigma = mx.concatenate([p[:, None, :] + offsets, p[:, None, :] - offsets], axis=1)  # (N,6,3)
     z = p[:, 2]
     valid = (z <= camera.far) & mx.isfinite(z) & mx.all(sigma[..., 2] >= camera.near, axis=1)
+    limit = camera.lens_limit
+    if math.isfinite(limit):  # every sigma point where the lens is one-to-one, else it folds back into the picture
+        sz = mx.maximum(sigma[..., 2], camera.near)
+        r2 = (sigma[..., 0] * sigma[..., 0] + sigma[..., 1] * sigma[..., 1]) / (sz * sz)
+        off_axis = mx.arctan(mx.sqrt(r2)) ** 2 if camera.model == "fisheye" else r2
+        valid = valid & mx.stop_gradient(mx.all(off_axis < limit, axis=1))
     safe_p = mx.where(valid[:, None], p, mx.array([0.0, 0.0, 1.0]))
     safe_sigma = mx.where(valid[:, None, None], sigma, mx.array([0.0, 0.0, 1.0]))
     centre = camera.camera_to_pixels(safe_p)[0]  # (N,2)
