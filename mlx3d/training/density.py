@@ -42,39 +42,6 @@ def _keep(params: dict, optimizer, keep: np.ndarray) -> dict:
     return _take(params, rows)
 
 
-#: A Gaussian whose ellipsoid of this many standard deviations holds a camera centre contains the camera.
-CAMERA_CLEARANCE = 3.0
-
-
-def contains_camera(params: dict, camera_centres, sigmas: float = CAMERA_CLEARANCE) -> np.ndarray:
-    """(N,) True for the Gaussians whose ``sigmas``-standard-deviation ellipsoid holds one of the
-    ``camera_centres`` (M, 3).
-
-    The renderer projects a Gaussian by linearising the camera's projection at its centre (EWA), which
-    holds only for a Gaussian in front of the camera: one that wraps around the camera becomes a veil over
-    the whole picture, lit by its colour. In training such a Gaussian may help the views it contains (a
-    backdrop Gaussian grown around them fills their sky) and covers every view near them; 3DGS's own
-    prune of large Gaussians comes only after the first opacity reset."""
-    centres = np.asarray(camera_centres, dtype=np.float64).reshape(-1, 3)
-    n = params["means"].shape[0]
-    if n == 0 or len(centres) == 0:
-        return np.zeros(n, bool)
-    means = np.array(params["means"], dtype=np.float64)
-    std = np.exp(np.array(params["scales"], dtype=np.float64))
-    reach = sigmas * std.max(axis=1)
-    near = np.zeros(n, bool)
-    for c in centres:  # cheap sphere test first: only Gaussians that reach some camera get the exact one
-        near |= ((means - c) ** 2).sum(axis=1) < reach ** 2
-    rows = np.flatnonzero(near)
-    inside = np.zeros(n, bool)
-    if rows.size:
-        rot = np.array(quaternion_to_matrix(np.array(params["quats"], dtype=np.float64)[rows]))
-        for c in centres:
-            local = np.einsum("nji,nj->ni", rot, c - means[rows]) / std[rows]  # in the Gaussian's own axes
-            inside[rows] |= (local ** 2).sum(axis=1) < sigmas ** 2
-    return inside
-
-
 def densify_and_prune(
     params: dict,
     grad_accum,
@@ -90,14 +57,11 @@ def densify_and_prune(
     rng: np.random.Generator | None = None,
     scene_centre=None,
     backdrop_radius: float | None = None,
-    camera_centres=None,
 ) -> tuple[dict, dict]:
     """One densification round. Returns (new params, counts {'cloned', 'split', 'pruned'}).
 
     scene_centre (3,) and backdrop_radius (scene units): Gaussians farther than
-    that from the centre are exempt from the size prunes; None: none is.
-    camera_centres (M, 3): the training cameras; the Gaussians that contain one
-    (:func:`contains_camera`) are pruned, backdrop included; None: no such prune."""
+    that from the centre are exempt from the size prunes; None: none is."""
     rng = rng or np.random.default_rng(0)
     n = params["means"].shape[0]
     count = np.asarray(grad_count, dtype=np.float64)
@@ -149,8 +113,6 @@ def densify_and_prune(
             distance = np.linalg.norm(np.array(params["means"], dtype=np.float64) - np.asarray(scene_centre, np.float64), axis=1)
             too_big &= distance <= backdrop_radius
         prune |= too_big
-    if camera_centres is not None:
-        prune |= contains_camera(params, camera_centres)
     params = _keep(params, optimizer, ~prune)
     return params, {"cloned": int(clone.sum()), "split": int(split.sum()), "pruned": int(prune.sum()) - int(split.sum())}
 
@@ -228,12 +190,9 @@ def _apply_copies(params: dict, optimizer, sources: np.ndarray, targets: np.ndar
     return {k: mx.array(v.astype(np.float32)) for k, v in out.items()}
 
 
-def relocate_dead(params: dict, optimizer=None, min_opacity: float = 0.005, rng=None, max_frac: float = 1.0,
-                  jitter_scale: float = 0.0, camera_centres=None) -> tuple[dict, int]:
+def relocate_dead(params: dict, optimizer=None, min_opacity: float = 0.005, rng=None, max_frac: float = 1.0, jitter_scale: float = 0.0) -> tuple[dict, int]:
     """Move Gaussians with opacity ≤ ``min_opacity`` onto live ones sampled in proportion to
     opacity, correcting opacity and scale for the copies. N stays constant.
-    camera_centres (M, 3): the Gaussians that contain a training camera (:func:`contains_camera`)
-    count as dead too (None: none does).
 
     max_frac: at most this fraction of N moves per call (the most transparent first; when
     every Gaussian is dead, the others are the sources, so a fraction below 1 still moves);
@@ -242,8 +201,6 @@ def relocate_dead(params: dict, optimizer=None, min_opacity: float = 0.005, rng=
     rng = rng or np.random.default_rng(0)
     n = params["means"].shape[0]
     opacity = 1.0 / (1.0 + np.exp(-np.array(params["opacities"], dtype=np.float64)))
-    if camera_centres is not None:
-        opacity = np.where(contains_camera(params, camera_centres), 0.0, opacity)
     dead = np.flatnonzero(opacity <= min_opacity)
     alive = np.flatnonzero(opacity > min_opacity)
     limit = int(max_frac * n)

@@ -98,9 +98,6 @@ class TrainerConfig:
     # Gaussians farther than this × the scene extent from the cameras' centre are the backdrop: the size
     # prunes (max_screen_size, 0.1 × extent) leave them alone; None: 3DGS's prunes for every Gaussian.
     backdrop_distance: float | None = 5.0
-    # Gaussians that contain a training camera (within 3 standard deviations: a veil over every view near it,
-    # see density.contains_camera) are pruned (vanilla, 2dgs) or relocated (mcmc) at each density event
-    prune_camera_inside: bool = True
     # 3DGS as Markov Chain Monte Carlo (method='mcmc'); relocation/growth run on the densify schedule
     mcmc_min_opacity: float = 0.005  # "dead" below this opacity
     mcmc_relocate_frac: float = 1.0  # at most this fraction of N relocated per event
@@ -266,7 +263,6 @@ class GaussianTrainer:
         self.ranks = ranks if ranks is not None and ranks.size > 1 else None
         self.scene_extent = float(scene_extent) if scene_extent > 0 else 1.0
         self.scene_centre = None if scene_centre is None else np.asarray(scene_centre, np.float64).reshape(3)
-        self.camera_centres = None  # (M, 3) the training cameras, set by fit
         self.bilateral = None  # the BilateralGrid when enabled (needs num_images; fit() knows it)
         self.grid_optimizer = None
         if self.config.bilateral_grid and num_images:
@@ -574,13 +570,11 @@ class GaussianTrainer:
                 c.prune_opacity, self.optimizer, c.max_screen_size if self.opacity_resets else None, radii,
                 c.max_gaussians, self.rng, self.scene_centre,
                 None if c.backdrop_distance is None else c.backdrop_distance * self.scene_extent,
-                self.camera_centres if c.prune_camera_inside else None,
             )
             self._set_params(params)
             return counts
         if event == "relocate":
-            params, moved = relocate_dead(self.model.params, self.optimizer, c.mcmc_min_opacity, self.rng, c.mcmc_relocate_frac,
-                                          c.mcmc_jitter_scale, self.camera_centres if c.prune_camera_inside else None)
+            params, moved = relocate_dead(self.model.params, self.optimizer, c.mcmc_min_opacity, self.rng, c.mcmc_relocate_frac, c.mcmc_jitter_scale)
             self.model.params = params
             return moved
         if event == "grow":
@@ -624,7 +618,6 @@ class GaussianTrainer:
             self.config = replace(self.config, max_gaussians=mcmc_budget(len(self.model), image_pixels(dataset)))
         if self.scene_centre is None:
             self.scene_centre = dataset.scene_centre()
-        self.camera_centres = np.array([dataset.frames[i].camera.center for i in dataset.train], dtype=np.float64)
         batch, ranks = self.config.batch_size, self.ranks
         if ranks is not None:
             if batch < ranks.size:
