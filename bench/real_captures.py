@@ -120,11 +120,10 @@ def _milestones(text) -> list[int]:
 # ------------------------------------------------------------------ the code measured
 def _commit() -> dict:
     def git(*cmd):
-        return subprocess.run(["git", *cmd], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+        return subprocess.run(["git", *cmd], cwd=ROOT, capture_output=True, text=True).stdout
 
-    dirty = git("status", "--porcelain", "--", "mlx3d")
-    return {"commit": git("rev-parse", "--short=10", "HEAD"), "mlx3d_dirty": bool(dirty),
-            "mlx3d_changed": sorted({line[3:] for line in dirty.splitlines()})}
+    dirty = [line[3:] for line in git("status", "--porcelain", "--", "mlx3d").splitlines() if line.strip()]
+    return {"commit": git("rev-parse", "--short=10", "HEAD").strip(), "mlx3d_dirty": bool(dirty), "mlx3d_changed": sorted(dirty)}
 
 
 def _small_copy(src, dst) -> None:
@@ -166,8 +165,9 @@ def _captures_table(captures: dict) -> str:
 
 
 def _measured(row) -> str:
-    code = row["commit"] + (" + uncommitted mlx3d/ changes" if row.get("mlx3d_dirty") else "")
-    return f"{row['date']}, `{code}`"
+    changed = ", ".join(f"`{path}`" for path in row.get("mlx3d_changed", []))
+    code = f"`{row['commit']}`" + (f" + uncommitted changes to {changed or 'mlx3d/'}" if row.get("mlx3d_dirty") else "")
+    return f"{row['date']}, {code}"
 
 
 def _results_tables(rows) -> str:
