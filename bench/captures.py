@@ -390,11 +390,11 @@ def make_distorted(bpy, capture, folder, out, args):
 
 def make_walk(bpy, capture, folder, out, args):
     """The walk, solved with sequential matching (each photo with its next ones, as ``mlx3d poses --matching
-    sequential``), the matching for a walk or a video. With every pair matched (``auto`` below 100 photos) two
-    solves of earlier versions of this walk bent the path (rotation errors of 95 and 102 degrees, position errors
-    of 40 % of the path) though every photo registered under a pixel, where the plaza's stone cells repeat;
-    solves of this version with every pair matched were right. That default solve is kept in ``data_auto/`` and
-    reported beside."""
+    sequential``), the matching for a walk or a video. With every pair matched (``auto`` below 100 photos) and
+    the mapper as it was before commit 0686237, two solves of earlier versions of this walk bent the path
+    (rotation errors of 95 and 102 degrees, position errors of 40 % of the path) though every photo registered
+    under a pixel; since that commit the default solve of this walk is right too. It is kept in ``data_auto/``
+    and reported beside."""
     rng = np.random.default_rng(SEED + 2)
     render_dir = os.path.join(folder, "render")
     meta = render(bpy, capture, "walk", render_dir, scenes.build_open, walk_poses(rng), scenes.OPEN_LENS, args.dims,
