@@ -15,7 +15,7 @@ import sys
 
 import bpy
 
-from mlx3d.cli import PosesProgress
+from mlx3d.cli import PosesProgress, add_solving_arguments
 from mlx3d.errors import Mlx3dError
 from mlx3d.io.mesh_ply import write_mesh_ply
 
@@ -162,7 +162,8 @@ def cmd_capture(args) -> None:
 
 def _solve(source, out, args) -> None:
     """Solve the cameras of photos or a video into the dataset ``out`` and add them to the scene (as *Train from Photos*)."""
-    job = photos.PhotoSolve(source, out, fps=args.fps, matching=args.matching, max_image_size=args.max_image_size)
+    job = photos.PhotoSolve(source, out, fps=args.fps, blur_ratio=args.blur_ratio, matching=args.matching,
+                            max_image_size=args.max_image_size, min_registered=args.min_registered, verbose=args.verbose_sfm)
     job.run(progress=PosesProgress())  # a progress line per stage, as `mlx3d poses` prints
     _print(job.messages())
     _print(photos.add_solved(job.out, name=job.name)[3])
@@ -310,24 +311,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--test-every", type=int, default=8, help="hold out every n-th frame (0: none; default 8)")
     p.add_argument("--seed", type=int, default=0)
 
-    def solving(p):
-        from mlx3d.sfm import MATCHING
-
-        g = p.add_argument_group("solving cameras (photos without poses, or a video)")
-        g.add_argument("--matching", choices=MATCHING, default="auto",
-                       help="image pairs to match: every pair (exhaustive), neighbours in name order (sequential), or "
-                            "auto (default): exhaustive up to 100 photos, sequential for more and for videos")
-        g.add_argument("--max-image-size", type=_positive_int, default=1600, metavar="PX",
-                       help="find features on photos scaled to at most PX pixels on the longer side (default 1600)")
-        g.add_argument("--fps", type=float, default=None, metavar="N", help="video: frames taken per second (default 2)")
-
     text = ("Solve the cameras of a folder of photos (or a video) with COLMAP (pycolmap) into a dataset folder, set upright "
             "(+Z up, the scene at the origin), and add them to the scene as cameras and a point cloud (as Train from Photos).")
     p = sub.add_parser("poses", help=text, description=text)
     p.set_defaults(func=cmd_poses)
     p.add_argument("photos", metavar="PHOTOS", help="a folder of photos, or a video file")
     p.add_argument("--out", required=True, metavar="DIR", help="the dataset folder to write (new, or empty)")
-    solving(p)
+    add_solving_arguments(p)
     p.add_argument("--save-blend", metavar="OUT.blend", help="also save the scene with the cameras and the points")
 
     text = ("Train Gaussians on a dataset folder (COLMAP, NeRF-synthetic or nerfstudio), or on a folder of photos or a video "
@@ -337,7 +327,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("data", metavar="DATA", help="dataset folder (or its transforms*.json), or photos without poses, or a video")
     p.add_argument("--poses-out", metavar="DIR", help="where cameras solved from photos go (default: OUT's name + _poses, "
                    "beside OUT; an earlier solve there is reused)")
-    solving(p)
+    add_solving_arguments(p)
     p.add_argument("--out", required=True, metavar="OUT")
     p.add_argument("--method", choices=train.METHODS, default="vanilla", help="training method (default vanilla)")
     p.add_argument("--steps", type=_positive_int, default=30000, help="training steps (default 30000)")

@@ -126,12 +126,13 @@ def needs_solve(path) -> bool:
 class PhotoSolve:
     """One camera solve of photos or a video into the dataset folder ``out`` (see the module doc).
 
-    fps: frames taken per second of a video (None: ``mlx3d.sfm``'s default);
-    matching, max_image_size, min_registered, seed: as ``mlx3d.sfm.solve_capture``.
+    fps, blur_ratio: a video's frames taken per second and the sharpness kept (None: ``mlx3d.sfm``'s defaults);
+    matching, max_image_size, min_registered, seed, verbose: as ``mlx3d.sfm.solve_capture``.
     Bad input raises a ``PosesError`` (a ValueError) here, before anything starts.
     """
 
-    def __init__(self, source, out, *, fps=None, matching="auto", max_image_size=1600, min_registered=None, seed=0):
+    def __init__(self, source, out, *, fps=None, blur_ratio=None, matching="auto", max_image_size=1600, min_registered=None,
+                 seed=0, verbose=False):
         self.source, self.video = source_kind(source)
         self.name = source_name(self.source)
         self.out = Path(os.path.abspath(os.fspath(out)))
@@ -143,11 +144,11 @@ class PhotoSolve:
         if not self.video:
             list_photos(self.source)  # none: said now (too few: by the solve, at once)
         self._existed = self.out.exists()
-        self.options = dict(matching=matching, max_image_size=int(max_image_size), seed=int(seed))
+        self.options = dict(matching=matching, max_image_size=int(max_image_size), seed=int(seed), verbose=bool(verbose))
         if min_registered is not None:
             self.options["min_registered"] = float(min_registered)
         if self.video:
-            self.options["fps"] = fps
+            self.options.update(fps=fps, blur_ratio=blur_ratio)
         self.stages = [s for s in STAGES if self.video or s != "frames"]
         self.stage, self.progress = None, (0, 1)
         self._fraction = 0.0

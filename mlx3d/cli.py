@@ -489,6 +489,27 @@ def cmd_demo(args) -> None:
     run_demo(args.out)
 
 
+def add_solving_arguments(p) -> None:
+    """The options of a camera solve (``mlx3d poses``, ``mlx3d train PHOTOS``, ``blender_splat.py poses|train``)."""
+    from .sfm import MATCHING
+    from .sfm.solve import MIN_REGISTERED
+    from .sfm.video import DEFAULT_BLUR_RATIO, DEFAULT_FPS
+
+    g = p.add_argument_group("solving cameras (photos without poses, or a video)")
+    g.add_argument("--matching", choices=MATCHING, default="auto",
+                   help="image pairs to match: every pair (exhaustive), neighbours in name order (sequential), or "
+                        "auto (default): exhaustive up to 100 photos, sequential for more and for videos")
+    g.add_argument("--max-image-size", type=_positive_int, default=1600, metavar="PX",
+                   help="find features on photos scaled to at most PX pixels on the longer side (default 1600)")
+    g.add_argument("--min-registered", type=float, default=MIN_REGISTERED, metavar="F",
+                   help=f"fail unless at least this fraction of the photos is placed (default {MIN_REGISTERED})")
+    g.add_argument("--fps", type=float, default=None, metavar="N",
+                   help=f"video: frames taken per second (the sharpest of each 1/N s; default {DEFAULT_FPS:g})")
+    g.add_argument("--blur-ratio", type=float, default=None, metavar="R",
+                   help=f"video: drop frames less sharp than R times the median (default {DEFAULT_BLUR_RATIO:g}; 0 keeps all)")
+    g.add_argument("--verbose-sfm", action="store_true", help="print COLMAP's own log")
+
+
 def build_parser() -> argparse.ArgumentParser:
     from .training.trainer import METHODS
 
@@ -565,37 +586,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data", metavar="DATA_DIR", help="turn each normal towards the nearest camera of this dataset (default: each Gaussian's own, its thinnest axis)")
     reading(p)
 
-    def solving(p):
-        from .sfm import MATCHING
-        from .sfm.solve import MIN_REGISTERED
-        from .sfm.video import DEFAULT_BLUR_RATIO, DEFAULT_FPS
-
-        g = p.add_argument_group("solving cameras (photos without poses, or a video)")
-        g.add_argument("--matching", choices=MATCHING, default="auto",
-                       help="image pairs to match: every pair (exhaustive), neighbours in name order (sequential), or "
-                            "auto (default): exhaustive up to 100 photos, sequential for more and for videos")
-        g.add_argument("--max-image-size", type=_positive_int, default=1600, metavar="PX",
-                       help="find features on photos scaled to at most PX pixels on the longer side (default 1600)")
-        g.add_argument("--min-registered", type=float, default=MIN_REGISTERED, metavar="F",
-                       help=f"fail unless at least this fraction of the photos is placed (default {MIN_REGISTERED})")
-        g.add_argument("--fps", type=float, default=None, metavar="N",
-                       help=f"video: frames taken per second (the sharpest of each 1/N s; default {DEFAULT_FPS:g})")
-        g.add_argument("--blur-ratio", type=float, default=None, metavar="R",
-                       help=f"video: drop frames less sharp than R times the median (default {DEFAULT_BLUR_RATIO:g}; 0 keeps all)")
-        g.add_argument("--verbose-sfm", action="store_true", help="print COLMAP's own log")
 
     p = add("poses", cmd_poses, "Solve the cameras of a folder of photos (or a video) with COLMAP (pycolmap) and write a "
             "dataset that `mlx3d train` reads, set upright: +Z up, the scene at the origin.")
     p.add_argument("photos", metavar="PHOTOS", help="a folder of photos, or a video file")
     p.add_argument("--out", required=True, metavar="DIR", help="the dataset folder to write (new, or empty)")
-    solving(p)
+    add_solving_arguments(p)
 
     p = add("train", cmd_train, "Train Gaussians on a dataset (COLMAP, NeRF-synthetic or nerfstudio folder), or on a "
             "folder of photos or a video whose cameras are solved first (as `mlx3d poses`), and write a splat file.")
     p.add_argument("data", metavar="DATA_DIR", help="a dataset folder, or photos without poses, or a video")
     p.add_argument("--poses-out", metavar="DIR", help="where cameras solved from photos go (default: OUT's name + _poses, "
                    "beside OUT; an earlier solve there is reused)")
-    solving(p)
+    add_solving_arguments(p)
     p.add_argument("--out", required=True, metavar="OUT")
     p.add_argument("--method", choices=METHODS, default="vanilla", help="vanilla, mcmc or 2dgs (surfels, for mesh extraction)")
     p.add_argument("--steps", type=int, default=30000)
