@@ -38,7 +38,7 @@ BUILD_DIR ?= build/$(if $(filter .venv,$(VENV)),,$(VENV:.%=%)/){wheel_tag}
 # `make test` runs every entry, in its own venv, and fails if any failed:
 #   test-py311      .venv            Python 3.11, bpy 5.0.1 (numpy 1.26, as Blender 4.5 and 5.0): whole suite
 #   test-py313      .venv-py313      Python 3.13, bpy 5.2.3 (numpy 2.x, as Blender 5.1+): whole suite but the long
-#                    trainings (tests/core_marks.py: long_training), which test-py311 runs
+#                    trainings and the packaging tests (tests/core_marks.py: MLX3D_SECOND_SUITE), which test-py311 runs
 #   test-blender45  .venv-blender45  Python 3.11, bpy 4.5.x LTS: tests/blender (the installed extension zip)
 #   test-blender53  .venv-blender53  Python 3.13, bpy 5.3.0 (numpy 2.x): tests/blender, incl. Blender's own 3DGS import
 #   test-pip-editable  (temporary)   Python 3.11: a contributor's plain `pip install -e .` (build isolation)
@@ -101,7 +101,7 @@ test-py311:
 
 test-py313:
 	@$(call require_python,3.13,$(PYTHON313))
-	MLX3D_LONG_TRAININGS=0 $(MAKE) --no-print-directory test-venv VENV=.venv-py313 PYTHON="$(PYTHON313)" BPY=$(BPY_3.13)
+	MLX3D_SECOND_SUITE=1 $(MAKE) --no-print-directory test-venv VENV=.venv-py313 PYTHON="$(PYTHON313)" BPY=$(BPY_3.13)
 
 test-blender45:
 	@$(call require_python,3.11,$(PYTHON311))

@@ -4,7 +4,9 @@ threads and bits). They skip, with the reason, where the module is missing or tu
 ``long_training``: the mark of the few tests that train long enough to assert a quality users rely on. They
 would take most of CI's time on the pure MLX path (its trainer is the same code, which the other training
 tests run there), and what they measure depends on the trainer and kernels, not on the Python or numpy
-version, so they run once among the whole-suite entries: ``make test-py313`` sets ``MLX3D_LONG_TRAININGS=0``.
+version, so they run once among the whole-suite entries: ``make test-py313`` sets ``MLX3D_SECOND_SUITE=1``.
+``once_per_suite``: the mark of modules whose subject does not depend on the running Python or numpy (the
+extension zips, built for every Python from any), which the second whole-suite entry skips as well.
 ``runs_no_kernel``: the mark of test modules whose subject runs no kernel of ours (solving cameras with
 pycolmap, say): the pure path changes nothing there, so ``make test-pure`` skips them to keep CI's time.
 ``FAST``: the backend a test uses for "the fast renderer": 'cpu' (the C++ kernels), or 'mlx' where
@@ -18,10 +20,13 @@ from mlx3d import native
 
 needs_core = pytest.mark.skipif(not native.available(), reason="tests mlx3d._core itself, which is not available here (not built, or MLX3D_NO_CORE is set)")
 
+SECOND_SUITE = os.environ.get("MLX3D_SECOND_SUITE") == "1"
 long_training = pytest.mark.skipif(
-    not native.available() or os.environ.get("MLX3D_LONG_TRAININGS") == "0",
+    not native.available() or SECOND_SUITE,
     reason="a long training: over 25 minutes on the pure MLX path (the same trainer code, which the other training "
-    "tests run there); it runs once among the whole-suite entries (MLX3D_LONG_TRAININGS=0 here)",
+    "tests run there); it runs once among the whole-suite entries (MLX3D_SECOND_SUITE=1 here)",
 )
+once_per_suite = pytest.mark.skipif(SECOND_SUITE, reason="does not depend on the Python or numpy running it: runs once "
+                                    "among the whole-suite entries (MLX3D_SECOND_SUITE=1 here)")
 runs_no_kernel = pytest.mark.skipif(not native.available(), reason="runs no kernel of ours: the pure MLX path changes nothing here")
 FAST = "cpu" if native.available() else "mlx"

@@ -41,9 +41,9 @@ from pathlib import Path
 
 import pytest
 
-from core_marks import runs_no_kernel  # noqa: E402
+from core_marks import once_per_suite, runs_no_kernel  # noqa: E402
 
-pytestmark = runs_no_kernel  # file formats, datasets and packaging: no kernel of ours runs here
+pytestmark = [runs_no_kernel, once_per_suite]  # no kernel of ours runs here, and the zips are built for every Python
 
 ROOT = Path(__file__).resolve().parents[1]
 PYTHONS = ("cp311", "cp313")
