@@ -25,6 +25,10 @@ Lens models (``model``):
 - ``'orthographic'``: ``u = fx x + cx``, ``v = fy y + cy`` with ``fx, fy`` in
   pixels per world unit (no division by z).
 
+A distorted lens is one-to-one only up to ``Camera.lens_limit`` off-axis (its
+radial polynomial turns back past it); the unscented projection culls
+Gaussians reaching beyond it.
+
 Point methods accept numpy arrays (computed in float64) or MLX arrays
 (computed in their own floating dtype, differentiable) and return the same
 array type. One implementation serves both: the math is plain arithmetic and
