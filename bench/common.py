@@ -92,3 +92,44 @@ class LoadSampler(threading.Thread):
         if load["median"] > shared_above:
             text += f" (a shared machine: other processes ran beside the benchmark, so times are slower and noisier than on an idle one{note})"
         return text
+
+
+def train_to_milestones(trainer, dataset, milestones, label: str):
+    """Train ``trainer`` on ``dataset`` up to each step count of ``milestones`` in turn, printing a progress line
+    (step, loss, training PSNR, Gaussians, seconds) every tenth of the last; yields (milestone, seconds trained)."""
+    import time
+
+    trained, done, started = 0.0, 0, [0.0]
+    every = max(milestones[-1] // 10, 1)
+
+    def progress(i: int, total: int, info: dict) -> None:
+        step = done + i
+        if step % every == 0:
+            print(f"[{label}] step {step:,}/{milestones[-1]:,}  loss {info['loss']:.4f}  train PSNR {info['psnr']:.2f}  "
+                  f"{info['num_gaussians']:,} Gaussians  ({trained + time.perf_counter() - started[0]:.0f} s)",
+                  file=sys.stderr, flush=True)
+
+    for milestone in milestones:
+        started[0] = time.perf_counter()
+        trainer.fit(dataset, steps=milestone - done, progress=progress)
+        trained += time.perf_counter() - started[0]
+        done = milestone
+        yield milestone, trained
+
+
+def held_out_metrics(model, dataset, background) -> dict:
+    """``mlx3d.training.evaluate.evaluate`` on the test split as the benchmark rows hold it: means, worst views,
+    colour-corrected figures, the time it took and every view's own figures (``per_view``)."""
+    import time
+
+    from mlx3d.training.evaluate import evaluate
+
+    start = time.perf_counter()
+    report = evaluate(model, dataset, "test", background)
+    views = report["views"]
+    return {
+        "views": len(views), "psnr": report["psnr"], "psnr_worst": report["worst"]["psnr"], "worst_view": report["worst"]["name"],
+        "ssim": report["ssim"], "ssim_worst": min(v["ssim"] for v in views),
+        "cc_psnr": report["cc_psnr"], "cc_psnr_worst": report["cc_worst"]["cc_psnr"], "cc_worst_view": report["cc_worst"]["name"],
+        "cc_ssim": report["cc_ssim"], "eval_seconds": time.perf_counter() - start, "per_view": views,
+    }

@@ -39,9 +39,8 @@ import re
 import subprocess
 import sys
 import threading
-import time
 
-from common import LoadSampler, machine_line, peak_rss_mb  # bench/ is on sys.path when run as a script
+from common import LoadSampler, held_out_metrics, machine_line, peak_rss_mb, train_to_milestones  # bench/ is on sys.path when run as a script
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
@@ -57,7 +56,7 @@ NOTES = ("captures", "views")  # hand-written parts of the page, kept when it is
 def _child(args) -> None:
     from mlx3d.datasets import load_dataset
     from mlx3d.training import GaussianTrainer, TrainerConfig
-    from mlx3d.training.evaluate import BACKGROUNDS, evaluate, render_view, save_side_by_side
+    from mlx3d.training.evaluate import BACKGROUNDS, render_view, save_side_by_side
     from mlx3d.training.initial import initial_state
 
     scene, method = args.scene, args.child
@@ -73,32 +72,10 @@ def _child(args) -> None:
     base = {"scene": scene, "method": method, "schedule": milestones[-1], "factor": args.factor,
             "size": f"{first.width}x{first.height}", "train_views": len(dataset.train), "test_views": len(dataset.test),
             "start_points": 0 if dataset.points is None else int(len(dataset.points)), "start_gaussians": len(start.model)}
-    trained, done = 0.0, 0
-    every = max(milestones[-1] // 10, 1)
-
-    def progress(i: int, total: int, info: dict) -> None:
-        step = done + i
-        if step % every == 0:
-            print(f"[{scene} {method}] step {step:,}/{milestones[-1]:,}  loss {info['loss']:.4f}  train PSNR {info['psnr']:.2f}  "
-                  f"{info['num_gaussians']:,} Gaussians  ({trained + time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
-
-    for milestone in milestones:
-        t0 = time.perf_counter()
-        trainer.fit(dataset, steps=milestone - done, progress=progress)
-        trained += time.perf_counter() - t0
-        done = milestone
+    for milestone, trained in train_to_milestones(trainer, dataset, milestones, f"{scene} {method}"):
         row = {**base, "steps": milestone, "seconds": trained, "steps_per_s": milestone / max(trained, 1e-9),
-               "gaussians": len(trainer.model)}
-        t1 = time.perf_counter()
-        report = evaluate(trainer.model, dataset, "test", background)
-        views = report["views"]
-        row.update({
-            "psnr": report["psnr"], "psnr_worst": report["worst"]["psnr"], "worst_view": report["worst"]["name"],
-            "ssim": report["ssim"], "ssim_worst": min(v["ssim"] for v in views),
-            "cc_psnr": report["cc_psnr"], "cc_psnr_worst": report["cc_worst"]["cc_psnr"],
-            "eval_seconds": time.perf_counter() - t1, "per_view": views,
-        })
-        index = next(i for i in dataset.test if dataset.frames[i].name == report["worst"]["name"])
+               "gaussians": len(trainer.model), **held_out_metrics(trainer.model, dataset, background)}
+        index = next(i for i in dataset.test if dataset.frames[i].name == row["worst_view"])
         target, image = render_view(trainer.model, dataset, index, background)
         os.makedirs(args.out, exist_ok=True)
         row["worst_png"] = os.path.join(args.out, f"{_key_name(row)}_worst.png")

@@ -48,7 +48,7 @@ import sys
 import threading
 import time
 
-from common import LoadSampler, emit, machine_line, peak_rss_mb  # bench/ is on sys.path when run as a script
+from common import LoadSampler, emit, held_out_metrics, machine_line, peak_rss_mb, train_to_milestones  # bench/ is on sys.path when run as a script
 
 VARIANTS = ("plain", "grid")
 
@@ -57,7 +57,7 @@ VARIANTS = ("plain", "grid")
 def _child(args) -> None:
     from mlx3d.datasets import load_dataset
     from mlx3d.training import GaussianTrainer, TrainerConfig
-    from mlx3d.training.evaluate import BACKGROUNDS, evaluate, render_view, save_side_by_side
+    from mlx3d.training.evaluate import BACKGROUNDS, render_view, save_side_by_side
     from mlx3d.training.initial import initial_state
 
     scene, method, variant = args.scene, args.child, args.variant
@@ -73,36 +73,14 @@ def _child(args) -> None:
     for note in start.notes:
         print(f"[{label}] {note}", file=sys.stderr, flush=True)
     trainer = GaussianTrainer(start.model, start.config, scene_extent=dataset.scene_extent())
-    trained, done = 0.0, 0
-    every = max(milestones[-1] // 10, 1)
-
-    def progress(i: int, total: int, info: dict) -> None:
-        step = done + i
-        if step % every == 0:
-            print(f"[{label}] step {step:,}/{milestones[-1]:,}  loss {info['loss']:.4f}  train PSNR {info['psnr']:.2f}  "
-                  f"{info['num_gaussians']:,} Gaussians  ({trained + time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
-
-    for milestone in milestones:
-        t0 = time.perf_counter()
-        trainer.fit(dataset, steps=milestone - done, progress=progress)
-        trained += time.perf_counter() - t0
-        done = milestone
+    for milestone, trained in train_to_milestones(trainer, dataset, milestones, label):
         row = {"scene": scene, "method": method, "variant": variant, "steps": milestone, "seconds": trained,
                "steps_per_s": milestone / max(trained, 1e-9), "gaussians": len(trainer.model)}
         if dataset.test:
-            t1 = time.perf_counter()
-            report = evaluate(trainer.model, dataset, "test", background)
-            views = report["views"]
-            row.update({
-                "views": len(views),
-                "psnr": report["psnr"], "psnr_worst": report["worst"]["psnr"], "worst_view": report["worst"]["name"],
-                "ssim": report["ssim"], "ssim_worst": min(v["ssim"] for v in views),
-                "cc_psnr": report["cc_psnr"], "cc_psnr_worst": report["cc_worst"]["cc_psnr"], "cc_worst_view": report["cc_worst"]["name"],
-                "cc_ssim": report["cc_ssim"], "eval_seconds": time.perf_counter() - t1,
-                "per_view": views,
-            })
+            report = held_out_metrics(trainer.model, dataset, background)
+            row.update(report)
             if milestone == milestones[-1]:
-                index = next(i for i in dataset.test if dataset.frames[i].name == report["worst"]["name"])
+                index = next(i for i in dataset.test if dataset.frames[i].name == report["worst_view"])
                 target, image = render_view(trainer.model, dataset, index, background)
                 os.makedirs(args.out, exist_ok=True)
                 row["worst_png"] = os.path.join(args.out, f"{scene}_{method}_{variant}_worst.png")
