@@ -29,7 +29,6 @@ from __future__ import annotations
 import os
 import shutil
 import tempfile
-import threading
 from pathlib import Path
 
 import bpy
@@ -42,6 +41,7 @@ from mlx3d.sfm.solve import PHOTO_SUFFIXES
 from .camera import set_blender_camera
 from .display import attribute_material
 from .splat_object import pointcloud_from_positions, srgb_to_linear
+from .worker import WorkerJob
 
 #: The stages ``solve_capture`` reports, in order ("frames" for a video only), and what they do.
 STAGES = {
@@ -123,7 +123,7 @@ def needs_solve(path) -> bool:
         return True
 
 
-class PhotoSolve:
+class PhotoSolve(WorkerJob):
     """One camera solve of photos or a video into the dataset folder ``out`` (see the module doc).
 
     fps, blur_ratio: a video's frames taken per second and the sharpness kept (None: ``mlx3d.sfm``'s defaults);
@@ -153,9 +153,8 @@ class PhotoSolve:
         self.stage, self.progress = None, (0, 1)
         self._fraction = 0.0
         self.result = None
-        self.error = None
-        self._cancel = threading.Event()
-        self._thread = None
+        super().__init__()
+        self.thread_name = f"mlx3d solve {self.name}"
 
     # -- solving (any thread)
     def run(self, progress=None, should_stop=None):
@@ -173,33 +172,12 @@ class PhotoSolve:
         self.result = solve_capture(self.source, self.out, progress=report, should_stop=stop, **self.options)
         return self.result
 
-    def _work(self):
-        try:
-            self.run()
-        except BaseException as exc:  # noqa: BLE001 - handed to the main thread
-            self.error = exc
-
-    def start(self) -> None:
-        """Run ``run`` on a worker thread."""
-        self._thread = threading.Thread(target=self._work, name=f"mlx3d solve {self.name}", daemon=True)
-        self._thread.start()
-
-    @property
-    def running(self) -> bool:
-        return self._thread is not None and self._thread.is_alive()
-
-    def cancel(self) -> None:
-        self._cancel.set()
+    def work(self):
+        self.run()
 
     @property
     def cancelled(self) -> bool:
         return self._cancel.is_set() or isinstance(self.error, KeyboardInterrupt)
-
-    def wait(self, timeout=None) -> bool:
-        """Wait for the worker thread; True when it has finished."""
-        if self._thread is not None:
-            self._thread.join(timeout)
-        return not self.running
 
     def fraction(self) -> float:
         """Overall progress in [0, 1], each stage an equal share; it never goes back (the mapping may

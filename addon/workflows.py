@@ -11,7 +11,6 @@ anything in the scene or on disk is changed.
 from __future__ import annotations
 
 import os
-import threading
 import time
 import warnings
 from contextlib import contextmanager
@@ -40,6 +39,7 @@ from .splat_object import (
     replace_splats,
     srgb_to_linear,
 )
+from .worker import WorkerJob
 
 # Axis presets: file axes -> Blender axes, exact 0/±1 matrices.
 AXIS_PRESETS = {
@@ -267,7 +267,7 @@ class ExtractionCancelled(Exception):
     """Raised through the meshing progress callback to stop an extraction; nothing is added to the scene."""
 
 
-class MeshExtraction:
+class MeshExtraction(WorkerJob):
     """One surface-mesh extraction from a splat object, in three steps:
 
     - the constructor (main thread) checks the object, reads its splats in its
@@ -310,10 +310,9 @@ class MeshExtraction:
         if len(self.surfels[0]) == 0:
             raise MeshingError(f"no splat of '{obj.name}' has opacity >= {min_opacity:g} (of {self.count:,}); nothing to mesh")
         self.surface = self.mesh = None
-        self.error = None
         self.progress = (0, 1)
-        self._cancel = threading.Event()
-        self._thread = None
+        super().__init__()
+        self.thread_name = f"mlx3d mesh {self.source_name}"
 
     # -- computation (any thread)
     def _report(self, progress):
@@ -332,35 +331,13 @@ class MeshExtraction:
         self.surface = surface
         return surface
 
-    def _work(self):
-        try:
-            self.compute()
-        except BaseException as exc:  # handed to the main thread by add_object
-            self.error = exc
-
-    def start(self) -> None:
-        """Run ``compute`` on a worker thread."""
-        self._thread = threading.Thread(target=self._work, name=f"mlx3d mesh {self.source_name}", daemon=True)
-        self._thread.start()
-
-    @property
-    def running(self) -> bool:
-        return self._thread is not None and self._thread.is_alive()
-
-    def cancel(self) -> None:
-        self._cancel.set()
+    def work(self):
+        self.compute()
 
     @property
     def cancelled(self) -> bool:
         return self._cancel.is_set()
 
-    def wait(self, timeout=None) -> bool:
-        """Wait for the worker thread; True when it has finished."""
-        if self._thread is not None:
-            self._thread.join(timeout)
-        return not self.running
-
-    # -- result (main thread)
     def add_object(self):
         """The mesh object, parented to the splat object with an identity parent inverse; (object, messages)."""
         if self.error is not None:
