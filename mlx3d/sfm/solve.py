@@ -4,7 +4,7 @@
 :mod:`.video`) into a COLMAP workspace that :func:`mlx3d.datasets.load_dataset`
 reads::
 
-    OUT/images/         the photos solved (copies; EXIF rotation applied)
+    OUT/images/         the photos solved (copies; EXIF rotation applied; WebP as PNG)
     OUT/sparse/0/       cameras.bin, images.bin, points3D.bin (COLMAP's binary model)
     OUT/poses.json      what was solved: photos registered, reprojection error, timings
 
@@ -12,7 +12,8 @@ Stages, each reported through ``progress(stage, done, total)`` and each
 cancellable: ``photos`` (copying), ``features`` (SIFT on images scaled to at
 most ``max_image_size`` pixels), ``matching`` (every pair for small sets,
 neighbours in name order for videos and long walks, see :func:`choose_matching`),
-``mapping`` (COLMAP's incremental mapper; the largest model is kept).
+``mapping`` (COLMAP's incremental mapper from three first pairs; the best
+result is kept, see below).
 
 Choices that differ from COLMAP's defaults, each for a kind of capture that
 failed without it:
@@ -72,6 +73,8 @@ from .orient import upright
 
 #: Image file suffixes read as photos (case-insensitive).
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp")
+#: Of those, the ones pycolmap's image reader cannot decode: copied as ``NAME.png`` (lossless).
+CONVERTED = (".webp",)
 MATCHING = ("auto", "exhaustive", "sequential")
 #: ``auto`` matches every pair up to this many photos, neighbours in name order above it.
 EXHAUSTIVE_MAX = 100
@@ -179,35 +182,39 @@ def _chunks(items: list, count: int) -> list[list]:
     return [items[i:i + size] for i in range(0, len(items), size)]
 
 
-def _copy_photos(source: Path, names: list[str], images: Path, progress, should_stop) -> list[tuple[int, int]]:
-    """Copy the photos into ``images``, applying EXIF rotation (a rotated copy keeps the rest of its EXIF).
+def _copy_photos(source: Path, names: list[str], images: Path, progress, should_stop) -> list[tuple[str, tuple[int, int]]]:
+    """Copy the photos into ``images``, applying EXIF rotation (a rotated copy keeps the rest of its EXIF);
+    a photo in a format COLMAP cannot read (:data:`CONVERTED`) is written as ``NAME.png``.
 
-    Returns each photo's (width, height) as copied."""
+    Returns each photo's (name as copied, (width, height) as copied)."""
     from PIL import Image, ImageOps
 
     images.mkdir(parents=True)
-    sizes = []
+    copied = []
     for i, name in enumerate(names):
         if should_stop is not None and should_stop():
             raise KeyboardInterrupt
-        src, dst = source / name, images / name
+        src = source / name
+        convert = src.suffix.lower() in CONVERTED
+        dst = images / (name + ".png" if convert else name)
         try:
             with Image.open(src) as im:
                 orientation = im.getexif().get(0x0112, 1)
-                if orientation in (2, 3, 4, 5, 6, 7, 8):
+                if orientation in (2, 3, 4, 5, 6, 7, 8) or convert:
                     upright_im = ImageOps.exif_transpose(im)
                     exif = upright_im.getexif()
                     quality = {"quality": 95} if dst.suffix.lower() in (".jpg", ".jpeg") else {}
                     upright_im.save(dst, exif=exif.tobytes(), **quality)
-                    sizes.append(upright_im.size)
+                    size = upright_im.size
                 else:
-                    sizes.append(im.size)
+                    size = im.size
                     shutil.copyfile(src, dst)
         except OSError as exc:
             raise PosesError(f"{src}: cannot read this photo: {exc}") from None
+        copied.append((dst.name, size))
         if progress is not None:
             progress("photos", i + 1, len(names))
-    return sizes
+    return copied
 
 
 def _run_stage(pycolmap, stage: str, work: Callable, done, total: int, progress, should_stop):
@@ -345,7 +352,8 @@ def solve_poses(photos, out, *, matching: str = "auto", max_image_size: int = 16
     previous_level = _quiet(pycolmap, verbose)
     try:
         t0 = time.perf_counter()
-        sizes = _copy_photos(source, names, images, progress, should_stop)
+        copied = _copy_photos(source, names, images, progress, should_stop)
+        names, sizes = [name for name, _ in copied], [size for _, size in copied]
         scratch.mkdir()
         seconds["photos"] = time.perf_counter() - t0
 
