@@ -172,10 +172,10 @@ def test_exif_rotation_is_applied_to_the_copies_and_webp_becomes_png(tmp_path):
     exif[0xA405] = 28  # focal length in 35 mm film: kept in the rotated copy
     Image.fromarray(pixels).save(src / "a.jpg", exif=exif.tobytes(), quality=100)
     Image.fromarray(pixels).save(src / "b.jpg", quality=100)
-    Image.fromarray(pixels).save(src / "c.webp", lossless=True)  # pycolmap reads no WebP: copied as PNG
-    copied = _copy_photos(src, ["a.jpg", "b.jpg", "c.webp"], tmp_path / "images", None, None)
-    assert copied == [("a.jpg", (20, 40)), ("b.jpg", (40, 20)), ("c.webp.png", (40, 20))]
-    with Image.open(tmp_path / "images" / "c.webp.png") as im:
+    Image.fromarray(pixels).save(src / "c d.webp", lossless=True)  # pycolmap reads no WebP: copied as PNG
+    copied = _copy_photos(src, ["a.jpg", "b.jpg", "c d.webp"], tmp_path / "images", None, None)
+    assert copied == [("a.jpg", (20, 40)), ("b.jpg", (40, 20)), ("c_d.webp.png", (40, 20))]
+    with Image.open(tmp_path / "images" / "c_d.webp.png") as im:
         assert im.format == "PNG" and (np.asarray(im) == pixels).all()
     with Image.open(tmp_path / "images" / "a.jpg") as im:
         shown = np.asarray(im)

@@ -4,7 +4,7 @@
 :mod:`.video`) into a COLMAP workspace that :func:`mlx3d.datasets.load_dataset`
 reads::
 
-    OUT/images/         the photos solved (copies; EXIF rotation applied; WebP as PNG)
+    OUT/images/         the photos solved (copies; EXIF rotation applied; WebP as PNG; spaces as _)
     OUT/sparse/0/       cameras.bin, images.bin, points3D.bin (COLMAP's binary model)
     OUT/poses.json      what was solved: photos registered, reprojection error, timings
 
@@ -58,6 +58,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import secrets
 import shutil
 import threading
@@ -184,7 +185,8 @@ def _chunks(items: list, count: int) -> list[list]:
 
 def _copy_photos(source: Path, names: list[str], images: Path, progress, should_stop) -> list[tuple[str, tuple[int, int]]]:
     """Copy the photos into ``images``, applying EXIF rotation (a rotated copy keeps the rest of its EXIF);
-    a photo in a format COLMAP cannot read (:data:`CONVERTED`) is written as ``NAME.png``.
+    a photo in a format COLMAP cannot read (:data:`CONVERTED`) is written as ``NAME.png``, and white space in
+    a name becomes ``_`` (COLMAP's lists of image pairs separate names by white space).
 
     Returns each photo's (name as copied, (width, height) as copied)."""
     from PIL import Image, ImageOps
@@ -196,7 +198,9 @@ def _copy_photos(source: Path, names: list[str], images: Path, progress, should_
             raise KeyboardInterrupt
         src = source / name
         convert = src.suffix.lower() in CONVERTED
-        dst = images / (name + ".png" if convert else name)
+        dst = images / re.sub(r"\s", "_", name + ".png" if convert else name)
+        if dst.exists():
+            raise PosesError(f"{source}: two photos would be copied as {dst.name} ({name} and another); rename one")
         try:
             with Image.open(src) as im:
                 orientation = im.getexif().get(0x0112, 1)
@@ -338,10 +342,6 @@ def solve_poses(photos, out, *, matching: str = "auto", max_image_size: int = 16
         raise PosesError(f"min_registered must be a fraction in (0, 1], got {min_registered!r}")
     if int(max_image_size) < 64:
         raise PosesError(f"max_image_size must be at least 64 pixels, got {max_image_size!r}")
-    spaced = [n for n in names if any(ch.isspace() for ch in n)]
-    if spaced:  # COLMAP's lists of image pairs separate names by white space
-        raise PosesError(f"{source}: photo names with spaces cannot be matched by COLMAP; rename "
-                         f"{', '.join(spaced[:5])}{' ...' if len(spaced) > 5 else ''}")
     kind = choose_matching(matching, len(names), video)
 
     out.parent.mkdir(parents=True, exist_ok=True)
