@@ -15,7 +15,8 @@ import sys
 
 import bpy
 
-from mlx3d.cli import PosesProgress, add_solving_arguments
+from mlx3d.cli import add_solving_arguments
+from mlx3d.progress import StageProgressLine
 from mlx3d.errors import Mlx3dError
 from mlx3d.io.mesh_ply import write_mesh_ply
 
@@ -164,7 +165,7 @@ def _solve(source, out, args) -> None:
     """Solve the cameras of photos or a video into the dataset ``out`` and add them to the scene (as *Train from Photos*)."""
     job = photos.PhotoSolve(source, out, fps=args.fps, blur_ratio=args.blur_ratio, matching=args.matching,
                             max_image_size=args.max_image_size, min_registered=args.min_registered, verbose=args.verbose_sfm)
-    job.run(progress=PosesProgress())  # a progress line per stage, as `mlx3d poses` prints
+    job.run(progress=StageProgressLine("poses"))  # a progress line per stage, as `mlx3d poses` prints
     _print(job.messages())
     _print(photos.add_solved(job.out, name=job.name)[3])
 

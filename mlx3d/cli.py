@@ -22,7 +22,7 @@ from .errors import Mlx3dError
 from .io.ply import NORMAL_NAMES
 from .io.codec import sigmoid
 from .io.formats import FORMATS, format_for_path
-from .progress import ProgressLine, step
+from .progress import ProgressLine, StageProgressLine, step
 
 #: The writable extensions, for help texts.
 FORMAT_HELP = " ".join(ext for f in FORMATS if f.writer for ext in f.extensions if ext.startswith("."))
@@ -253,25 +253,13 @@ def _background_arg(text: str):
     return text if text == "random" else BACKGROUNDS[text]
 
 
-class PosesProgress:
-    """Progress line for a camera solve: one :class:`ProgressLine` per stage (``progress(stage, done, total)``)."""
-
-    def __init__(self):
-        self.line = None
-
-    def __call__(self, stage: str, done: int, total: int) -> None:
-        if self.line is None or self.line.label != f"poses: {stage}":
-            self.line = ProgressLine(f"poses: {stage}")
-        self.line(done, total)
-
-
 def _solve(source: str, out: str, args):
     """Solve the cameras of photos or a video into the dataset ``out`` and print what was solved."""
     from .sfm import solve_capture
 
     result = solve_capture(source, out, matching=args.matching, max_image_size=args.max_image_size,
                            min_registered=args.min_registered, fps=args.fps, blur_ratio=args.blur_ratio,
-                           progress=PosesProgress(), verbose=args.verbose_sfm)
+                           progress=StageProgressLine("poses"), verbose=args.verbose_sfm)
     print(f"poses: {result.summary()}")
     if result.unregistered:
         print(f"poses: not placed, left out of the dataset: {', '.join(result.unregistered)}")

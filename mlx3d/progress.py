@@ -43,6 +43,20 @@ class ProgressLine:
         self.stream.flush()
 
 
+class StageProgressLine:
+    """Callable ``(stage, done, total)`` for work in named stages: a :class:`ProgressLine` per stage,
+    labelled ``PREFIX: STAGE`` (e.g. ``poses: matching: 42.0% (3.1 s)``)."""
+
+    def __init__(self, prefix: str, stream=None):
+        self.prefix, self.stream, self.line = prefix, stream, None
+
+    def __call__(self, stage: str, done: int, total: int) -> None:
+        label = f"{self.prefix}: {stage}"
+        if self.line is None or self.line.label != label:
+            self.line = ProgressLine(label, self.stream)
+        self.line(done, total)
+
+
 @contextmanager
 def step(label: str, stream=None):
     """Print ``label ...`` then ``done in X s`` around a block of work."""
