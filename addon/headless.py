@@ -16,9 +16,9 @@ import sys
 import bpy
 
 from mlx3d.cli import add_solving_arguments
-from mlx3d.progress import StageProgressLine
 from mlx3d.errors import Mlx3dError
 from mlx3d.io.mesh_ply import write_mesh_ply
+from mlx3d.progress import StageProgressLine
 
 from . import capture, demo, photos, scene_render, train, workflows
 
