@@ -28,8 +28,8 @@ failed without it:
   (``init_max_forward_motion`` 1.0, COLMAP 0.95): a handheld walk down a
   street has no other kind of pair, and only 2 of ``lund``'s 29 photos
   registered without it;
-- the mapper runs three times, from first image pairs seen 16, 8 and 4
-  degrees apart (:data:`INITIAL_PAIR_ANGLES`), and keeps the scene with the
+- the mapper runs from first image pairs seen 16, 8 and (while no run placed
+  every photo) 4 degrees apart (:data:`INITIAL_PAIR_ANGLES`), and keeps the scene with the
   most photos placed, then the smallest reprojection error: on ``lund`` the
   default 16 degrees gives a two-photo scene whose focal length runs away
   while 8 degrees places 27-28 of 29; on a rendered walk 16 degrees places
@@ -91,8 +91,8 @@ SEQUENTIAL_OVERLAP = 15
 #: Pixels: distortion that moves no pixel more than this is written as a pinhole camera.
 PINHOLE_TOLERANCE = 0.5
 #: The mapper runs once for each of these least angles (degrees) between the rays of its first image pair
-#: (COLMAP's default 16 first); the scene with the most photos placed, then the smallest reprojection
-#: error, is kept.
+#: (COLMAP's default 16 first; the last only while no run placed every photo); the scene with the most
+#: photos placed, then the smallest reprojection error, is kept.
 INITIAL_PAIR_ANGLES = (16.0, 8.0, 4.0)
 #: Default for ``min_registered``: refuse a result that registers fewer than this fraction of the photos.
 MIN_REGISTERED = 0.5
@@ -404,6 +404,8 @@ def solve_poses(photos, out, *, matching: str = "auto", max_image_size: int = 16
         t0 = time.perf_counter()
         rec, rec_error = None, math.inf
         for attempt, angle in enumerate(INITIAL_PAIR_ANGLES):
+            if attempt == len(INITIAL_PAIR_ANGLES) - 1 and rec is not None and rec.num_reg_images() == len(names):
+                break  # the last, smallest angle is for captures the others could not place whole
             registered = [0]
             attempt_dir = scratch / f"mapping-{attempt}"
             attempt_dir.mkdir()
