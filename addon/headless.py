@@ -19,6 +19,7 @@ from mlx3d.cli import add_solving_arguments
 from mlx3d.errors import Mlx3dError
 from mlx3d.io.mesh_ply import write_mesh_ply
 from mlx3d.progress import StageProgressLine
+from mlx3d.sfm import needs_solve, poses_folder
 
 from . import capture, demo, photos, scene_render, train, workflows
 
@@ -183,9 +184,9 @@ def cmd_poses(args) -> None:
 def _train_data(args) -> str:
     """The dataset to train on: ``args.data``, or for photos without poses or a video, the dataset solved from
     them into ``--poses-out`` (default: OUT's name + ``_poses``, beside OUT; an earlier solve there is reused)."""
-    if not photos.needs_solve(args.data):
+    if not needs_solve(args.data):
         return args.data
-    out = args.poses_out or os.path.splitext(os.path.abspath(args.out))[0] + "_poses"
+    out = poses_folder(args.out, args.poses_out)
     if os.path.isdir(out) and any(os.scandir(out)):
         print(f"{args.data}: photos without poses; using the cameras solved earlier in {out}")
         _print(photos.add_solved(out, name=photos.source_name(args.data))[3])  # a clear error when it holds something else

@@ -21,7 +21,6 @@ headless script and shows the result:
 - ``default_dataset_folder``: where a dataset goes when the user names no
   folder: ``<photos>_dataset`` next to the .blend file, or in the temporary
   folder, never an existing non-empty folder.
-- ``needs_solve``: whether a path is photos or a video rather than a dataset.
 """
 
 from __future__ import annotations
@@ -34,7 +33,7 @@ from pathlib import Path
 import bpy
 import numpy as np
 
-from mlx3d.datasets import DatasetError, detect_format, load_dataset
+from mlx3d.datasets import load_dataset
 from mlx3d.sfm import MATCHING, VIDEO_SUFFIXES, PosesError, is_video, list_photos, require_pycolmap, solve_capture
 from mlx3d.sfm.solve import PHOTO_SUFFIXES
 
@@ -103,24 +102,6 @@ def default_dataset_folder(source, blend_path: str = "") -> Path:
         n += 1
         candidate = base / f"{stem}_{n}"
     return candidate
-
-
-def needs_solve(path) -> bool:
-    """True for a video or a folder that is not a dataset (photos without poses); False for a dataset.
-    A missing path raises the dataset's error; a folder with neither a dataset nor photos says both."""
-    if is_video(path):
-        return True
-    try:
-        detect_format(path)
-        return False
-    except DatasetError as exc:
-        if not os.path.isdir(path):
-            raise
-        try:
-            list_photos(path)
-        except PosesError:
-            raise DatasetError(f"{exc}; and it holds no photos to solve cameras from") from None
-        return True
 
 
 class PhotoSolve(WorkerJob):

@@ -274,17 +274,12 @@ def cmd_poses(args) -> None:
 def _train_data(args) -> str:
     """The dataset to train on: ``args.data`` itself, or, for photos without poses or a video, the dataset
     solved from them into ``--poses-out`` (default: ``<OUT stem>_poses`` beside OUT; reused when it holds one)."""
-    from .datasets import DatasetError, detect_format
-    from .sfm import is_video
+    from .datasets import detect_format
+    from .sfm import needs_solve, poses_folder
 
-    if not is_video(args.data):
-        try:
-            detect_format(args.data)
-            return args.data
-        except DatasetError:
-            if not os.path.isdir(args.data):
-                raise
-    out = args.poses_out or os.path.splitext(os.path.abspath(args.out))[0] + "_poses"
+    if not needs_solve(args.data):
+        return args.data
+    out = poses_folder(args.out, args.poses_out)
     if os.path.isdir(out) and any(os.scandir(out)):
         detect_format(out)  # an earlier solve: a clear error when it holds something else
         print(f"{args.data}: photos without poses; using the cameras solved earlier in {out}")
@@ -573,7 +568,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--trim", type=float, default=None, metavar="VOXELS", help="drop faces farther than this from every disc centre (0: keep all)")
     p.add_argument("--data", metavar="DATA_DIR", help="turn each normal towards the nearest camera of this dataset (default: each Gaussian's own, its thinnest axis)")
     reading(p)
-
 
     p = add("poses", cmd_poses, "Solve the cameras of a folder of photos (or a video) with COLMAP (pycolmap) and write a "
             "dataset that `mlx3d train` reads, set upright: +Z up, the scene at the origin.")

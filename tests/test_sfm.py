@@ -5,7 +5,6 @@ from __future__ import annotations
 import builtins
 import json
 import math
-import shutil
 import sys
 from pathlib import Path
 
@@ -18,7 +17,7 @@ from mlx3d.datasets import load_dataset
 from mlx3d.sfm import PosesError, choose_matching, extract_frames, solve_capture, solve_poses, upright
 from mlx3d.sfm.solve import EXHAUSTIVE_MAX, _copy_photos
 from mlx3d.sfm.video import sharpness
-from photo_capture import orbit_cameras, photo_orbit, similarity_errors
+from photo_capture import photo_orbit, similarity_errors
 
 pycolmap = pytest.importorskip("pycolmap", reason="pycolmap (the poses extra) is not installed")
 pytestmark = runs_no_kernel

@@ -18,7 +18,9 @@ class PosesError(Mlx3dError, ValueError):
 
 
 from .orient import upright  # noqa: E402
-from .solve import MATCHING, PosesResult, choose_matching, list_photos, require_pycolmap, solve_capture, solve_poses  # noqa: E402
+from .solve import (  # noqa: E402
+    MATCHING, PosesResult, choose_matching, list_photos, needs_solve, poses_folder, require_pycolmap, solve_capture, solve_poses,
+)
 from .video import VIDEO_SUFFIXES, extract_frames, is_video  # noqa: E402
 
 __all__ = [
@@ -30,6 +32,8 @@ __all__ = [
     "extract_frames",
     "is_video",
     "list_photos",
+    "needs_solve",
+    "poses_folder",
     "require_pycolmap",
     "solve_capture",
     "solve_poses",

@@ -156,6 +156,33 @@ def list_photos(folder) -> list[str]:
     return names
 
 
+def needs_solve(path) -> bool:
+    """True for a video or a folder that is not a dataset (photos without poses); False for a dataset.
+    A missing path raises the dataset's error; a folder with neither a dataset nor photos says both."""
+    from mlx3d.datasets import DatasetError, detect_format
+
+    from .video import is_video
+
+    if is_video(path):
+        return True
+    try:
+        detect_format(path)
+        return False
+    except DatasetError as exc:
+        if not os.path.isdir(path):
+            raise
+        try:
+            list_photos(path)
+        except PosesError:
+            raise DatasetError(f"{exc}; and it holds no photos to solve cameras from") from None
+        return True
+
+
+def poses_folder(out, poses_out=None) -> str:
+    """Where cameras solved for training go: ``poses_out``, else the output file's name + ``_poses`` beside it."""
+    return os.fspath(poses_out) if poses_out else os.path.splitext(os.path.abspath(out))[0] + "_poses"
+
+
 def choose_matching(matching: str, count: int, video: bool) -> str:
     """``exhaustive`` or ``sequential`` for ``matching`` (one of :data:`MATCHING`): ``auto`` matches
     every pair of up to :data:`EXHAUSTIVE_MAX` photos, and neighbours in order for videos and larger sets."""

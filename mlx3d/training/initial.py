@@ -62,6 +62,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..errors import Mlx3dError
+from ..io.codec import logit
 from ..splatting.model import GaussianModel
 
 BACKDROP_METHODS = ("vanilla", "mcmc")  # methods that seed a backdrop on opaque photos by default
@@ -326,9 +327,8 @@ def initial_state(dataset, config, sh_degree: int = 3, progress=None) -> Initial
         if haze < config.init_opacity:
             import mlx.core as mx
 
-            logit = math.log(haze / (1.0 - haze))
             model.params["opacities"] = mx.concatenate(
-                [mx.full((cube[0],), logit, dtype=model.params["opacities"].dtype), model.params["opacities"][cube[0]:]])
+                [mx.full((cube[0],), float(logit(haze)), dtype=model.params["opacities"].dtype), model.params["opacities"][cube[0]:]])
             notes.append(f"random points at opacity {haze:.3g}: optical depth {depth:.2g} across the cube "
                          f"(at {config.init_opacity:g} it would be {depth * config.init_opacity / haze:.2g}, a wall every view sees)")
     if config.method == "mcmc" and cap is None:
