@@ -82,6 +82,7 @@ sys.path.insert(0, HERE)
 sys.path.insert(0, os.path.join(ROOT, "tests"))
 
 import scenes  # noqa: E402  bench/scenes.py: the scene builders and the capture helpers
+from common import parse_only  # noqa: E402
 
 CAPTURES = ("arc", "walk", "distorted_exposure", "object_orbit", "lund")
 LUND = os.path.join(ROOT, "..", "shared", "data", "real", "lund")
@@ -456,10 +457,7 @@ def main() -> int:
     parser.add_argument("--samples", type=int, default=16, help="Cycles samples per pixel (default 16)")
     parser.add_argument("--lund", default=LUND, metavar="DIR", help="the lund photos (default ../shared/data/real/lund)")
     args = parser.parse_args()
-    only = CAPTURES if not args.only else tuple(s.strip() for s in args.only.split(",") if s.strip())
-    unknown = [s for s in only if s not in CAPTURES]
-    if unknown:
-        parser.error(f"unknown capture(s) {', '.join(unknown)}; choose from {', '.join(CAPTURES)}")
+    only = parse_only(parser, args.only, CAPTURES, "capture")
     if args.size < 64 or args.samples < 1:
         parser.error("--size must be at least 64 and --samples at least 1")
     args.dims = (args.size, (args.size * 3 // 4) // 2 * 2)

@@ -133,3 +133,13 @@ def held_out_metrics(model, dataset, background) -> dict:
         "cc_psnr": report["cc_psnr"], "cc_psnr_worst": report["cc_worst"]["cc_psnr"], "cc_worst_view": report["cc_worst"]["name"],
         "cc_ssim": report["cc_ssim"], "eval_seconds": time.perf_counter() - start, "per_view": views,
     }
+
+
+def parse_only(parser, text, choices, what: str) -> tuple:
+    """The names in the comma-separated ``text`` of an ``--only`` option (every one of ``choices`` when it is
+    empty); an unknown name is a usage error naming ``what`` they are (``scene``, ``capture``)."""
+    only = tuple(choices) if not text else tuple(s.strip() for s in text.split(",") if s.strip())
+    unknown = [s for s in only if s not in choices]
+    if unknown:
+        parser.error(f"unknown {what}(s) {', '.join(unknown)}; choose from {', '.join(choices)}")
+    return only

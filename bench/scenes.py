@@ -670,16 +670,15 @@ def _folder_mb(folder) -> float:
 
 
 def main() -> None:
+    from common import parse_only  # bench/ is on sys.path when run as a script
+
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", default=os.path.join("bench_data", "scenes"), help="output folder (default bench_data/scenes)")
     parser.add_argument("--size", type=int, default=128, help="image width and height in pixels (default 128)")
     parser.add_argument("--only", help=f"comma-separated scenes to make (of {', '.join(SCENES)})")
     parser.add_argument("--samples", type=int, default=16, help="Cycles samples per pixel (default 16)")
     args = parser.parse_args()
-    only = SCENES if not args.only else tuple(s.strip() for s in args.only.split(",") if s.strip())
-    unknown = [s for s in only if s not in SCENES]
-    if unknown:
-        parser.error(f"unknown scene(s) {', '.join(unknown)}; choose from {', '.join(SCENES)}")
+    only = parse_only(parser, args.only, SCENES, "scene")
     if args.size < 8 or args.samples < 1:
         parser.error("--size must be at least 8 and --samples at least 1")
 
