@@ -55,7 +55,7 @@ NOTES = ("captures", "views")  # hand-written parts of the page, kept when it is
 # ------------------------------------------------------------------ one run (child process)
 def _child(args) -> None:
     from mlx3d.datasets import load_dataset
-    from mlx3d.training import GaussianTrainer, TrainerConfig
+    from mlx3d.training import GaussianTrainer, TrainerConfig, events_at
     from mlx3d.training.evaluate import BACKGROUNDS, render_view, save_side_by_side
     from mlx3d.training.initial import initial_state
 
@@ -73,6 +73,10 @@ def _child(args) -> None:
             "size": f"{first.width}x{first.height}", "train_views": len(dataset.train), "test_views": len(dataset.test),
             "start_points": 0 if dataset.points is None else int(len(dataset.points)), "start_gaussians": len(start.model)}
     for milestone, trained in train_to_milestones(trainer, dataset, milestones, f"{scene} {method}"):
+        if milestone < milestones[-1] and "reset_opacity" in events_at(trainer.config, milestone):
+            print(f"[{scene} {method}] no row at step {milestone:,}: the opacity reset has just made every Gaussian "
+                  "nearly transparent", file=sys.stderr, flush=True)
+            continue
         row = {**base, "steps": milestone, "seconds": trained, "steps_per_s": milestone / max(trained, 1e-9),
                "gaussians": len(trainer.model), **held_out_metrics(trainer.model, dataset, background)}
         index = next(i for i in dataset.test if dataset.frames[i].name == row["worst_view"])
