@@ -391,17 +391,30 @@ def cmd_mesh(args) -> None:
     from .meshing import DEFAULT_TRIM
 
     model = _load(args.model, args.nonfinite)
-    centres = None
+    resolution = args.resolution or (256 if args.method == "fusion" else 128)
+    cameras = None
     if args.data:
         from .datasets import load_dataset
 
-        centres = [frame.camera.center for frame in load_dataset(args.data).frames]
-    trim = DEFAULT_TRIM if args.trim is None else args.trim
-    with step(f"extracting a mesh at resolution {args.resolution}"):
-        mesh = model.surface_mesh(
-            resolution=args.resolution, padding=args.padding, min_opacity=args.min_opacity, max_points=args.max_points,
-            orient_towards=centres, trim=trim, progress=ProgressLine("meshing"),
-        )
+        dataset = load_dataset(args.data)
+        cameras = [dataset.frames[i].camera for i in dataset.train]
+    if args.method == "fusion":
+        where = f"{len(cameras)} training views" if cameras else "60 views around the model"
+        with step(f"fusing the depth of {where} at resolution {resolution}"):
+            mesh = model.fused_mesh(cameras, resolution=resolution, voxel_size=args.voxel_size,
+                                    truncation=args.truncation, cleanup=args.cleanup, progress=ProgressLine("meshing"))
+    else:
+        trim = DEFAULT_TRIM if args.trim is None else args.trim
+        centres = None if cameras is None else [camera.center for camera in cameras]
+        with step(f"extracting a mesh at resolution {resolution}"):
+            mesh = model.surface_mesh(
+                resolution=resolution, padding=args.padding, min_opacity=args.min_opacity, max_points=args.max_points,
+                orient_towards=centres, trim=trim, progress=ProgressLine("meshing"),
+            )
+        if args.cleanup:
+            from .meshing import keep_large_components
+
+            mesh = keep_large_components(mesh, args.cleanup)
     mesh.save_ply(args.out)
     print(f"wrote {args.out}: {len(mesh.vertices):,} vertices, {len(mesh.faces):,} faces, area {mesh.area():.4g}, watertight {mesh.is_watertight()}")
 
@@ -558,15 +571,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sh-degree", type=int, default=None, choices=(0, 1, 2, 3), metavar="D")
     reading(p)
 
-    p = add("mesh", cmd_mesh, "Extract a triangle mesh (PLY with vertex colours) by Poisson reconstruction from the Gaussians as oriented discs.")
+    p = add("mesh", cmd_mesh, "Extract a triangle mesh (PLY with vertex colours): by fusing the depth the splats render "
+            "from the training views (--method fusion) or by Poisson reconstruction from the Gaussians as oriented discs.")
     p.add_argument("model", metavar="MODEL")
     p.add_argument("--out", required=True, metavar="MESH.ply")
-    p.add_argument("--resolution", type=int, default=128, help="grid cells per side (default 128; memory grows with its cube)")
-    p.add_argument("--padding", type=float, default=0.1, help="grid margin, as a fraction of the bounding box's largest side")
-    p.add_argument("--min-opacity", type=float, default=0.01, help="ignore Gaussians below this opacity")
-    p.add_argument("--max-points", type=int, default=200_000, help="keep the N largest opaque discs (default 200000)")
-    p.add_argument("--trim", type=float, default=None, metavar="VOXELS", help="drop faces farther than this from every disc centre (0: keep all)")
-    p.add_argument("--data", metavar="DATA_DIR", help="turn each normal towards the nearest camera of this dataset (default: each Gaussian's own, its thinnest axis)")
+    p.add_argument("--method", choices=("fusion", "poisson"), default="fusion",
+                   help="fusion: depth maps into a signed distance volume, unseen space left empty (default); "
+                        "poisson: a closed surface through the Gaussians' discs")
+    p.add_argument("--data", metavar="DATA_DIR", help="the dataset trained on: fusion renders its training views "
+                   "(default: 60 views around the model); poisson turns each normal towards the nearest of its cameras")
+    p.add_argument("--resolution", type=int, default=None,
+                   help="voxels along the largest side (default 256 for fusion, 128 for poisson; poisson's memory grows with its cube)")
+    p.add_argument("--voxel-size", type=float, default=None, metavar="LENGTH", help="fusion: voxel size in scene units (instead of --resolution)")
+    p.add_argument("--truncation", type=float, default=None, metavar="LENGTH", help="fusion: signed distance truncation in scene units (default 4 voxels)")
+    p.add_argument("--cleanup", type=float, default=0.01, metavar="FRACTION",
+                   help="drop pieces of fewer faces than this fraction of the largest piece's (default 0.01; 0 keeps all)")
+    p.add_argument("--padding", type=float, default=0.1, help="poisson: grid margin, as a fraction of the bounding box's largest side")
+    p.add_argument("--min-opacity", type=float, default=0.01, help="poisson: ignore Gaussians below this opacity")
+    p.add_argument("--max-points", type=int, default=200_000, help="poisson: keep the N largest opaque discs (default 200000)")
+    p.add_argument("--trim", type=float, default=None, metavar="VOXELS", help="poisson: drop faces farther than this from every disc centre (0: keep all)")
     reading(p)
 
     p = add("poses", cmd_poses, "Solve the cameras of a folder of photos (or a video) with COLMAP (pycolmap) and write a "

@@ -144,15 +144,19 @@ def test_mesh_writes_a_coloured_mesh_and_refuses_transparent_models(tmp_path, ca
     m.params["quats"] = mx.array(q.astype(np.float32))
     m.params["scales"] = mx.array(np.log(np.tile([0.04, 0.04, 1e-3], (6000, 1))).astype(np.float32))
     m.save_ply(tmp_path / "ball.ply")
-    assert main(["mesh", str(tmp_path / "ball.ply"), "--out", str(tmp_path / "ball_mesh.ply"), "--resolution", "48"]) == 0
-    assert "faces" in capsys.readouterr().out
-    mesh = read_mesh_ply(tmp_path / "ball_mesh.ply")
-    assert np.abs(np.linalg.norm(mesh.vertices, axis=1) - 1.0).max() < 2 * 2.4 / 48
-    np.testing.assert_allclose(mesh.colors.mean(0), [0.9, 0.2, 0.1], atol=2 / 255)
-    m.params["opacities"] = mx.full((6000,), -9.0)
-    m.save_ply(tmp_path / "clear.ply")
-    assert main(["mesh", str(tmp_path / "clear.ply"), "--out", str(tmp_path / "clear_mesh.ply")]) == 1
-    assert "no Gaussian has opacity" in capsys.readouterr().err and not (tmp_path / "clear_mesh.ply").exists()
+    opaque = m.params["opacities"]
+    for method, error in (("fusion", "the splats cover no pixel"), ("poisson", "no Gaussian has opacity")):
+        out = tmp_path / f"ball_{method}.ply"
+        assert main(["mesh", str(tmp_path / "ball.ply"), "--out", str(out), "--method", method, "--resolution", "48"]) == 0
+        assert "faces" in capsys.readouterr().out
+        mesh = read_mesh_ply(out)
+        assert np.abs(np.linalg.norm(mesh.vertices, axis=1) - 1.0).max() < 2 * 2.4 / 48
+        np.testing.assert_allclose(mesh.colors.mean(0), [0.9, 0.2, 0.1], atol=2 / 255)
+        m.params["opacities"] = mx.full((6000,), -9.0)
+        m.save_ply(tmp_path / "clear.ply")
+        assert main(["mesh", str(tmp_path / "clear.ply"), "--out", str(tmp_path / "clear_mesh.ply"), "--method", method]) == 1
+        assert error in capsys.readouterr().err and not (tmp_path / "clear_mesh.ply").exists()
+        m.params["opacities"] = opaque
 
 
 WRITABLE = [".ply", ".compressed.ply", ".spz", ".sog", ".splat", ".ksplat", ".glb"]

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from mlx3d.cameras import Camera
-from mlx3d.render import facing_normals, render_gaussian_features, render_gaussians
+from mlx3d.render import facing_normals, render_gaussian_features, render_gaussian_median_depth, render_gaussians
 from mlx3d.splatting import GaussianModel
 from mlx3d.training import geometry
 from mlx3d.training.trainer import GaussianTrainer, TrainerConfig
@@ -110,6 +110,44 @@ def test_planar_depth_follows_a_tilted_disc(model):
     assert spread > 0.2  # the disc is steep in depth
     assert np.abs(planar[inside] - truth[inside]).max() < (1e-4 if model == "orthographic" else 0.1 * spread)  # first order
     assert np.abs(flat[inside] - truth[inside]).max() > 0.5 * spread
+
+
+@pytest.mark.parametrize("planar", [False, True])
+def test_median_depth_is_the_layer_where_the_coverage_reaches_one_half(planar):
+    """Two discs on the optical axis: the median depth is the front one's when it alone covers half the
+    pixel, the back one's when it does not; the expected depth lies between (the analytic two-layer case)."""
+    cam = front_camera()
+    i, j = cam.height // 2, cam.width // 2
+    for front, layer in ((0.7, 0), (0.3, 1)):
+        s = {"means": mx.array(np.float32([[0, -1.0, 0], [0, 0.5, 0]])), "quats": mx.array(quat_from_z_to([[0, -1.0, 0]] * 2)),
+             "scales": mx.array(np.float32([[0.5, 0.5, 1e-3]] * 2)), "opacities": mx.array(np.float32([front, 0.9]))}
+        median = render_gaussian_median_depth(cam, **s, planar=planar, backend=FAST)
+        expected = render_gaussians(cam, **s, colors=mx.zeros((2, 3)), render_depth=True, planar_depth=planar, backend=FAST)
+        assert float(median["depth"][i, j]) == pytest.approx([3.0, 4.5][layer], abs=1e-4)
+        assert 3.05 < float(expected["depth"][i, j]) < 4.45
+        assert float(median["alpha"][i, j]) == pytest.approx(float(expected["alpha"][i, j]), abs=1e-6)
+        covered = np.array(median["alpha"]) >= 0.5
+        assert (np.array(median["depth"])[~covered] == 0).all() and (np.array(median["depth"])[covered] > 2.9).all()
+    with pytest.raises(ValueError, match="level"):
+        render_gaussian_median_depth(cam, **s, level=1.0)
+
+
+def test_median_planar_depth_follows_a_tilted_disc_in_front_of_another():
+    cam = front_camera()
+    normal = np.array([0.5, -0.7, 0.3]) / np.linalg.norm([0.5, -0.7, 0.3])
+    centre = np.array([0.1, 0.2, -0.1])
+    s = {"means": mx.array(np.float32([centre, [0.0, 2.0, 0.0]])), "quats": mx.array(quat_from_z_to([normal, [0, -1.0, 0]])),
+         "scales": mx.array(np.float32([[0.6, 0.4, 1e-4], [3.0, 3.0, 1e-4]])), "opacities": mx.array(np.float32([0.99, 0.99]))}
+    origins, dirs = cam.rays()
+    t = ((centre - origins) @ normal) / (dirs @ normal)
+    truth = (origins + t[..., None] * dirs - cam.center) @ cam.camtoworld[:3, 2]
+    alone = {k: v[:1] for k, v in s.items()}
+    inside = np.array(render_gaussians(cam, **alone, colors=mx.zeros((1, 3)), backend=FAST)["alpha"]) > 0.6
+    median = np.array(render_gaussian_median_depth(cam, **s, planar=True, backend=FAST)["depth"])
+    expected = np.array(render_gaussians(cam, **s, colors=mx.zeros((2, 3)), render_depth=True, planar_depth=True, backend=FAST)["depth"])
+    assert inside.sum() > 40
+    assert np.abs(median[inside] - truth[inside]).max() < 0.05
+    assert np.abs(expected[inside] - truth[inside]).max() > 0.5  # the disc behind pulls the mean depth back
 
 
 def test_geometry_channels_match_explicit_feature_renders():

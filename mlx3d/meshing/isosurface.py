@@ -103,6 +103,7 @@ def marching_tetrahedra(
     level: float,
     origin: np.ndarray | tuple[float, float, float] = (0.0, 0.0, 0.0),
     spacing: float = 1.0,
+    mask: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Isosurface ``values == level`` of a grid, as an indexed triangle mesh.
 
@@ -113,12 +114,16 @@ def marching_tetrahedra(
         level: finite iso value (used as float32). Nodes above it are inside.
         origin: (3,) position of node (0, 0, 0).
         spacing: distance between neighbouring nodes (> 0).
+        mask: optional (X, Y, Z) bool, False for nodes whose value is not
+            known: cubes with such a corner make no triangles (the surface
+            stops open there instead of closing around unknown space). Values
+            at masked-out nodes may be anything finite.
 
     Returns:
         ``(vertices, faces)``: (V, 3) float32 positions and (F, 3) int32
         indices, oriented with normals pointing from higher to lower values
         (out of the region ``values > level``). The mesh is closed and
-        manifold except where it meets the grid boundary.
+        manifold except where it meets the grid boundary or masked-out nodes.
     """
     vals = np.asarray(values)
     if vals.ndim != 3 or min(vals.shape) < 2:
@@ -129,6 +134,10 @@ def marching_tetrahedra(
     if not np.isfinite(level) or not np.isfinite(vals).all():
         raise ValueError("values and level must be finite (NaN or Inf found)")
     nx, ny, nz = vals.shape
+    if mask is not None:
+        mask = np.asarray(mask, dtype=bool)
+        if mask.shape != vals.shape:
+            raise ValueError(f"mask must have the grid's shape {vals.shape}, got {mask.shape}")
     inside = vals > level
     on_level = vals == level
     if on_level.any():  # keep every edge parameter strictly inside (0, 1)
@@ -141,8 +150,14 @@ def marching_tetrahedra(
     for c in range(8):
         x, y, z = _bits(c)
         count += inside[x : nx - 1 + x, y : ny - 1 + y, z : nz - 1 + z]
-    active = np.flatnonzero((count > 0) & (count < 8))
+    straddles = (count > 0) & (count < 8)
     del count
+    if mask is not None:
+        for c in range(8):
+            x, y, z = _bits(c)
+            straddles &= mask[x : nx - 1 + x, y : ny - 1 + y, z : nz - 1 + z]
+    active = np.flatnonzero(straddles)
+    del straddles
     empty = (np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32))
     if active.size == 0:
         return empty

@@ -14,7 +14,17 @@ import numpy as np
 
 from mlx3d.errors import Mlx3dError
 
-__all__ = ["MeshingError", "SurfaceMesh"]
+__all__ = ["MeshingError", "SurfaceMesh", "compact_faces"]
+
+
+def compact_faces(vertices: np.ndarray, faces: np.ndarray, keep_faces: np.ndarray):
+    """Keeps ``faces[keep_faces]`` and only the vertices they use: ``(vertices, faces, vertex_index)``, the last
+    the (V',) indices of the kept vertices in the input."""
+    faces = faces[keep_faces]
+    used = np.zeros(len(vertices), dtype=bool)
+    used[faces.ravel()] = True
+    remap = np.cumsum(used, dtype=np.int64) - 1
+    return vertices[used], remap[faces].astype(np.int32), np.flatnonzero(used)
 
 
 class MeshingError(Mlx3dError, ValueError):

@@ -41,7 +41,7 @@ import numpy as np
 from mlx3d.progress import ProgressFn
 
 from .isosurface import marching_tetrahedra
-from .mesh import MeshingError, SurfaceMesh
+from .mesh import MeshingError, SurfaceMesh, compact_faces
 
 __all__ = [
     "reconstruct_surface",
@@ -297,15 +297,6 @@ def _indicator(r: int, box: list) -> np.ndarray:
     return np.array(chi, dtype=np.float32, copy=True)
 
 
-def _compact(vertices: np.ndarray, faces: np.ndarray, keep_faces: np.ndarray):
-    """Keeps ``faces[keep_faces]`` and only the vertices they use. Returns (vertices, faces, vertex_index)."""
-    faces = faces[keep_faces]
-    used = np.zeros(len(vertices), dtype=bool)
-    used[faces.ravel()] = True
-    remap = np.cumsum(used, dtype=np.int64) - 1
-    return vertices[used], remap[faces].astype(np.int32), np.flatnonzero(used)
-
-
 # --------------------------------------------------------------------------- #
 # public API
 # --------------------------------------------------------------------------- #
@@ -392,7 +383,7 @@ def reconstruct_surface(
         near = neighbours[1][:, 0] <= trim * grid.voxel
         keep = near[faces].all(axis=1)
         if not keep.all():
-            vertices, faces, used = _compact(vertices, faces, keep)
+            vertices, faces, used = compact_faces(vertices, faces, keep)
             neighbours = (neighbours[0][used], neighbours[1][used])
     report(5)
 

@@ -23,6 +23,7 @@ from .pipeline import (
     plan_render,
     render_gaussian_depth,
     render_gaussian_features,
+    render_gaussian_median_depth,
     render_gaussians,
     render_gaussians_reference,
 )
@@ -53,6 +54,7 @@ __all__ = [
     "rasterize_features",
     "render_gaussian_depth",
     "render_gaussian_features",
+    "render_gaussian_median_depth",
     "render_gaussians",
     "render_gaussians_reference",
     "resolve_backend",

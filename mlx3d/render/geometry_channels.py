@@ -46,7 +46,7 @@ def facing_normals(camera, means, quats) -> mx.array:
     return mx.stop_gradient(sign) * axis
 
 
-def _depth_planes(camera, means, normals, depths, means2d):
+def depth_planes(camera, means, normals, depths, means2d):
     """Per-Gaussian ``(a (N,), g (N,2))`` of ``z(q) = a + g·q``, q = pixel - image centre."""
     rot = mx.array(camera.viewmat[:3, :3], dtype=mx.float32)
     n_c = normals @ rot.T
@@ -78,7 +78,7 @@ def pack(plan, camera, means, quats, proj, reference) -> list:
     if plan.planar_depth:
         # culled Gaussians (never composited) may sit on the camera plane: keep their division finite
         depths = mx.where(proj.radii > 0, proj.depths, 1.0)
-        a, g = _depth_planes(camera, means, normals, depths, proj.means2d)
+        a, g = depth_planes(camera, means, normals, depths, proj.means2d)
         blocks.append(mx.concatenate([a[:, None], g], axis=1))
     elif plan.depth:
         blocks.append(proj.depths[:, None])
