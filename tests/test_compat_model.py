@@ -309,22 +309,24 @@ def test_extract_surface_mesh_returns_meshes():
 
 
 def test_extract_surface_mesh_hands_the_selected_surfels_to_poisson_reconstruction(monkeypatch):
-    """mlx3D: ``mlx3d.ops.poisson_reconstruction(points, normals, resolution, padding)`` of the ``max_points``
-    selected surfels. Ours adds keywords (area weights, colours, trim, progress), so a replacement takes ``**kw``."""
+    """mlx3D: ``mlx3d.ops.poisson_reconstruction(points, normals, resolution=, padding=)`` of the ``max_points``
+    selected surfels, so a script that substitutes that function with mlx3D's signature keeps working."""
     import mlx3d.ops as ops
 
     model = sphere_surfels()
     seen = {}
 
-    def replacement(points, normals, resolution, padding, **kw):
-        seen.update(points=points, normals=normals, resolution=resolution, padding=padding, keywords=set(kw))
+    def replacement(points, normals, resolution=64, padding=0.1):  # mlx3D's signature, nothing more
+        seen.update(points=points, normals=normals, resolution=resolution, padding=padding)
         return Meshes([mx.array(points[:3])], [mx.array([[0, 1, 2]], dtype=mx.int32)])
 
     monkeypatch.setattr(ops, "poisson_reconstruction", replacement)
     assert isinstance(model.extract_surface_mesh(resolution=12, padding=0.2, max_points=4), Meshes)
-    assert seen["points"].shape == (4, 3) and seen["normals"].shape == (4, 3)
+    assert isinstance(seen["points"], mx.array) and seen["points"].shape == (4, 3) and seen["normals"].shape == (4, 3)
     assert (seen["resolution"], seen["padding"]) == (12, 0.2)
-    assert seen["keywords"] == {"weights", "colors", "trim", "progress"}
+    expected = np.array(model.surfel_samples(max_points=4)[0])
+    np.testing.assert_array_equal(np.array(seen["points"]), expected)
+
 
 def test_meshes_views_of_a_batch():
     tet_v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32)

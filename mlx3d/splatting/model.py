@@ -638,13 +638,19 @@ class GaussianModel:
         ``surfel_samples`` (normal: the thinnest axis, which is local z for
         surfels; weighted by disc area; vertex colours in
         ``verts_colors_list()``); otherwise as ``surface_mesh``, which returns
-        the same mesh as a ``SurfaceMesh``. Raises ``MeshingError`` (a
+        the same mesh as a ``SurfaceMesh``. A script that replaces
+        ``mlx3d.ops.poisson_reconstruction`` gets mlx3D's call:
+        ``(points, normals, resolution=, padding=)``, MLX arrays (M, 3). Raises ``MeshingError`` (a
         ``ValueError``) when no Gaussian is opaque enough or the grid is invalid.
         """
-        from ..ops import poisson_reconstruction
+        from .. import ops
+        from ..ops.geometry import poisson_reconstruction
 
         points, normals, weights, colors = self._mesh_samples(min_opacity, max_points, orient_towards, normal_axis)
-        return poisson_reconstruction(points, normals, resolution, padding, weights=weights, colors=colors, trim=trim, progress=progress)
+        if ops.poisson_reconstruction is poisson_reconstruction:
+            return poisson_reconstruction(points, normals, resolution, padding, weights=weights, colors=colors, trim=trim, progress=progress)
+        # a substitute (a script's own mlx3d.ops.poisson_reconstruction) gets mlx3D's arguments and only those
+        return ops.poisson_reconstruction(mx.array(points), mx.array(normals), resolution=resolution, padding=padding)
 
     # ------------------------------------------------------------ rendering
     def render(self, camera, background=None, antialias: bool = False, projection: str = "auto", render_depth: bool = False, sh_degree: int | None = None, **kwargs) -> dict:
