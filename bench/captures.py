@@ -311,20 +311,26 @@ def solve(photos, data, matching="auto"):
     return result, time.perf_counter() - t0
 
 
+def camera_pairs(data, truth_frames) -> list:
+    """(solved camera, truth frame, true camera) for every photo the solve placed."""
+    from mlx3d.cameras import Camera
+    from mlx3d.datasets import load_dataset
+
+    solved = {f.name: f.camera for f in load_dataset(data).frames}
+    return [(solved[t["file"]], t, Camera.from_opengl_c2w(np.array(t["transform_matrix"]), solved[t["file"]].width,
+                                                          solved[t["file"]].height, t["fx"], t["fy"], t["cx"], t["cy"]))
+            for t in truth_frames if t["file"] in solved]
+
+
 def score(data, truth_frames) -> dict:
     """The solved cameras against the truth: largest rotation and position errors after a similarity alignment,
     solved focal length and k1 against the true ones."""
-    from mlx3d.cameras import Camera
-    from mlx3d.datasets import load_dataset
     from photo_capture import similarity_errors
 
-    solved = {f.name: f.camera for f in load_dataset(data).frames}
-    pairs = [(solved[t["file"]], t) for t in truth_frames if t["file"] in solved]
+    pairs = camera_pairs(data, truth_frames)
     if len(pairs) < 3:
         return {}
-    truth = [Camera.from_opengl_c2w(np.array(t["transform_matrix"]), s.width, s.height, t["fx"], t["fy"], t["cx"], t["cy"])
-             for s, t in pairs]
-    rotation, position = similarity_errors([s for s, _ in pairs], truth)
+    rotation, position = similarity_errors([s for s, _, _ in pairs], [c for _, _, c in pairs])
     first = pairs[0][0]
     dist = [float(d) for d in (first.dist or ())]
     return {"rotation_deg": rotation, "position_pct": 100.0 * position, "focal_true": pairs[0][1]["fx"],

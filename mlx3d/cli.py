@@ -391,7 +391,7 @@ def cmd_mesh(args) -> None:
     from .meshing import DEFAULT_TRIM
 
     model = _load(args.model, args.nonfinite)
-    resolution = args.resolution or (256 if args.method == "fusion" else 128)
+    resolution = args.resolution or 128
     cameras = None
     if args.data:
         from .datasets import load_dataset
@@ -581,7 +581,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data", metavar="DATA_DIR", help="the dataset trained on: fusion renders its training views "
                    "(default: 60 views around the model); poisson turns each normal towards the nearest of its cameras")
     p.add_argument("--resolution", type=int, default=None,
-                   help="voxels along the largest side (default 256 for fusion, 128 for poisson; poisson's memory grows with its cube)")
+                   help="voxels along the largest side (default 128; poisson's memory grows with its cube)")
     p.add_argument("--voxel-size", type=float, default=None, metavar="LENGTH", help="fusion: voxel size in scene units (instead of --resolution)")
     p.add_argument("--truncation", type=float, default=None, metavar="LENGTH", help="fusion: signed distance truncation in scene units (default 4 voxels)")
     p.add_argument("--cleanup", type=float, default=0.01, metavar="FRACTION",

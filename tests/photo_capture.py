@@ -71,12 +71,11 @@ def _umeyama(a: np.ndarray, b: np.ndarray):
     return scale, rot, mb - scale * rot @ ma
 
 
-def similarity_errors(solved, truth):
-    """Align solved cameras to true ones by a similarity and return (max rotation error in degrees, max
-    position error as a fraction of the true centres' diameter).
+def similarity(solved, truth):
+    """(scale, rotation (3,3), translation (3,)) taking the solved cameras' frame to the true one: ``s R x + t``.
 
-    The similarity is fitted (Umeyama) to each camera's centre and to points one spread of the centres along
-    its viewing and up axes, so that cameras on a line (a walk) fix the roll about it too."""
+    Fitted (Umeyama) to each camera's centre and to points one spread of the centres along its viewing and up
+    axes, so that cameras on a line (a walk) fix the roll about it too."""
     a = np.array([c.center for c in solved])
     b = np.array([c.center for c in truth])
     spread_a = float(np.sqrt(((a - a.mean(0)) ** 2).sum(1).mean()))
@@ -86,7 +85,15 @@ def similarity_errors(solved, truth):
         return np.concatenate([centres, centres + spread * np.array([c.R[2] for c in cameras]),
                                centres - spread * np.array([c.R[1] for c in cameras])])
 
-    scale, rot, shift = _umeyama(marks(solved, a, spread_a), marks(truth, b, spread_b))
+    return _umeyama(marks(solved, a, spread_a), marks(truth, b, spread_b))
+
+
+def similarity_errors(solved, truth):
+    """Align solved cameras to true ones by :func:`similarity` and return (max rotation error in degrees, max
+    position error as a fraction of the true centres' diameter)."""
+    a = np.array([c.center for c in solved])
+    b = np.array([c.center for c in truth])
+    scale, rot, shift = similarity(solved, truth)
     aligned = scale * a @ rot.T + shift
     diameter = float(np.max(np.linalg.norm(b[:, None] - b[None], axis=-1)))
     position = float(np.max(np.linalg.norm(aligned - b, axis=1))) / diameter

@@ -605,7 +605,7 @@ class GaussianModel:
         return reconstruct_surface(points, normals, weights, colors, resolution=resolution, padding=padding, trim=trim, progress=progress)
 
     def fused_mesh(
-        self, cameras=None, resolution: int = 256, voxel_size: float | None = None, truncation: float | None = None,
+        self, cameras=None, resolution: int = 128, voxel_size: float | None = None, truncation: float | None = None,
         depth: str = "median", min_alpha: float = 0.5, cleanup: float = 0.01, progress=None,
     ):
         """A triangle mesh by depth fusion, as a ``mlx3d.meshing.SurfaceMesh`` with vertex colours.

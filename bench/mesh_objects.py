@@ -1,0 +1,382 @@
+"""Meshes against surfaces known exactly: objects built with bpy, photographed on a full orbit, cameras solved here.
+
+    python bench/mesh_objects.py [--objects suzanne,bumpy_sphere,torus_knot] [--methods vanilla,2dgs]
+                                 [--extract fusion,poisson] [--steps 7000] [--size 320] [--resolution 128]
+                                 [--data bench_data/mesh_objects] [--markdown docs/benchmarks/mesh_objects.md]
+
+Each object (a subdivided Suzanne, a sphere displaced by a noise texture, a
+(2, 3) torus knot), textured with a weathered procedural material, is
+rendered with Cycles from 60 cameras on a two-turn spiral from 35 degrees
+below to 65 above it, with a transparent background (RGBA), at ``--size`` x
+3/4 pixels; its cameras are solved from the photos by ``mlx3d poses``
+(``mlx3d.sfm.solve_poses``: no Blender pose and no points are handed over).
+Training starts from the sparse points of the solve (every 8th photo held
+out), black background, as ``mlx3d train DATA`` does, for ``--steps`` steps
+per method. Each model is meshed by each extraction method at
+``--resolution`` (fusion from the training cameras, Poisson with normals
+towards them), the mesh is taken into Blender's frame by the similarity that
+best maps the solved cameras onto the true ones, and compared with the
+object's own triangles (200k area-uniform samples on each):
+
+- Chamfer: the mean of both directions' mean nearest-sample distance, as a
+  percentage of the true mesh's bounding-box diagonal;
+- F-score at 0.5 % and 1 % of the diagonal: the harmonic mean of precision (the
+  share of the mesh's samples that close to the truth) and recall (the
+  share of the truth's samples that close to the mesh);
+- normal consistency: the mean |cos| between a sample's normal and its
+  nearest sample's on the other mesh;
+- train and extraction time, and the extraction's peak memory (its own
+  process).
+
+Captures, trained models and meshes stay in ``--data`` (git-ignored); a
+capture is rebuilt only when its settings changed. The page gets the table,
+the machine and load, and one picture per object (the true mesh and each
+extraction from a held-out camera, Blender Workbench).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import math
+import os
+import shutil
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+sys.path.insert(0, os.path.join(ROOT, "tests"))  # photo_capture: the similarity alignment
+
+import captures  # noqa: E402  (bench/ is on sys.path when run as a script)
+import scenes  # noqa: E402
+from common import LoadSampler, machine_line, parse_only, peak_rss_mb  # noqa: E402
+from mesh_quality import render_meshes, sample_surface  # noqa: E402
+
+OBJECTS = ("suzanne", "bumpy_sphere", "torus_knot")
+METHODS = ("vanilla", "2dgs")
+EXTRACTIONS = ("fusion", "poisson")
+SAMPLES = 200_000
+THRESHOLDS = (0.005, 0.01)  # F-score distances, fractions of the true bounding-box diagonal
+FORMAT_VERSION = 1
+DOCS = os.path.join(ROOT, "docs", "benchmarks")
+PICTURES = "mesh_objects"
+
+
+# ------------------------------------------------------------------ the objects (bpy)
+def _finish(bpy, obj, material):
+    """Apply ``obj``'s modifiers, give it ``material`` and weather it (features for the solve)."""
+    bpy.context.view_layer.objects.active = obj
+    for modifier in list(obj.modifiers):
+        bpy.ops.object.modifier_apply(modifier=modifier.name)
+    obj.data.materials.clear()
+    obj.data.materials.append(material)
+    obj.data.shade_smooth()
+    captures.weather(bpy, [obj], scale=9.0)
+    bpy.context.view_layer.update()
+    return obj
+
+
+def _blotches(bpy, name):
+    """A high-contrast noise of five colours (dark to light): features everywhere for the camera solve."""
+    colours = [(0.02, 0.02, 0.03), (0.55, 0.12, 0.05), (0.85, 0.80, 0.70), (0.10, 0.35, 0.12), (0.95, 0.95, 0.95)]
+    return scenes._material(bpy, name, "NOISE", colours, scale=7.0, Detail=12.0, Roughness=0.65)
+
+
+def _scene(bpy):
+    return scenes._new_scene(bpy, sky_rgb=(0.6, 0.6, 0.6), sky_strength=1.0, sun_strength=3.0, sun_elevation=55.0, sun_azimuth=-40.0)
+
+
+def build_suzanne(bpy):
+    """Blender's monkey, subdivided twice (Catmull-Clark), about 1.1 units across."""
+    scene = _scene(bpy)
+    bpy.ops.mesh.primitive_monkey_add(size=1.1, location=(0.0, 0.0, 0.0))
+    obj = bpy.context.active_object
+    obj.name = "Suzanne"
+    obj.modifiers.new("subdivide", "SUBSURF").levels = 2
+    material = _blotches(bpy, "Suzanne")
+    return scene, [_finish(bpy, obj, material)], np.zeros(3)
+
+
+def build_bumpy_sphere(bpy):
+    """A sphere of radius 0.5 displaced along its normals by a clouds texture (up to about 0.05): fine detail."""
+    scene = _scene(bpy)
+    bpy.ops.mesh.primitive_ico_sphere_add(subdivisions=6, radius=0.5, location=(0.0, 0.0, 0.0))
+    obj = bpy.context.active_object
+    obj.name = "Bumpy sphere"
+    texture = bpy.data.textures.new("bumps", "CLOUDS")
+    texture.noise_scale = 0.12
+    displace = obj.modifiers.new("displace", "DISPLACE")
+    displace.texture, displace.texture_coords, displace.strength, displace.mid_level = texture, "LOCAL", 0.05, 0.5
+    material = _blotches(bpy, "Bumpy")
+    return scene, [_finish(bpy, obj, material)], np.zeros(3)
+
+
+def torus_knot(p=2, q=3, big=0.42, small=0.16, tube=0.09, segments=384, sides=20):
+    """(vertices, quads) of a tube of radius ``tube`` around the (p, q) torus knot of radii ``big``, ``small``."""
+    t = np.linspace(0.0, 2.0 * math.pi, segments, endpoint=False)
+    r = big + small * np.cos(q * t)
+    curve = np.stack([r * np.cos(p * t), r * np.sin(p * t), small * np.sin(q * t)], axis=1)
+    tangent = np.roll(curve, -1, axis=0) - np.roll(curve, 1, axis=0)
+    tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
+    normal = np.cross(tangent, [0.0, 0.0, 1.0])
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    binormal = np.cross(tangent, normal)
+    a = np.linspace(0.0, 2.0 * math.pi, sides, endpoint=False)
+    ring = np.cos(a)[None, :, None] * normal[:, None] + np.sin(a)[None, :, None] * binormal[:, None]
+    vertices = (curve[:, None] + tube * ring).reshape(-1, 3)
+    i, j = np.meshgrid(np.arange(segments), np.arange(sides), indexing="ij")
+    ni, nj = (i + 1) % segments, (j + 1) % sides
+    quads = np.stack([i * sides + j, ni * sides + j, ni * sides + nj, i * sides + nj], axis=-1).reshape(-1, 4)
+    return vertices, quads
+
+
+def build_torus_knot(bpy):
+    """A (2, 3) torus knot tube: thin parts close to each other."""
+    scene = _scene(bpy)
+    vertices, quads = torus_knot()
+    material = _blotches(bpy, "Knot")
+    obj = scenes._mesh(bpy, scene, "Torus knot", vertices, quads, material)
+    return scene, [_finish(bpy, obj, material)], np.zeros(3)
+
+
+BUILDERS = {"suzanne": build_suzanne, "bumpy_sphere": build_bumpy_sphere, "torus_knot": build_torus_knot}
+
+
+# ------------------------------------------------------------------ capture and solve
+def _settings(args) -> dict:
+    return {"size": list(args.dims), "samples": args.samples, "views": captures.OBJECT_VIEWS, "version": FORMAT_VERSION}
+
+
+def make_capture(bpy, capture, name, folder, args) -> dict:
+    """Photos, the true mesh and the truth frames of ``name`` in ``folder``, its cameras solved into ``folder/data``."""
+    if os.path.isdir(folder):
+        shutil.rmtree(folder)
+    os.makedirs(folder)
+    rng = np.random.default_rng(captures.SEED + OBJECTS.index(name))
+    render_dir = os.path.join(folder, "render")
+    poses = captures.orbit_poses(np.zeros(3), captures.OBJECT_DISTANCE, rng)
+    t0 = time.perf_counter()
+    meta = captures.render(bpy, capture, name, render_dir, BUILDERS[name], poses, scenes.OUTDOOR_LENS, args.dims,
+                           args.samples, transparent=True)
+    shutil.copy(os.path.join(render_dir, capture.MESH_NAME), os.path.join(folder, "truth.ply"))
+    frames = captures.write_photos(render_dir, meta, os.path.join(folder, "photos"), size=args.dims)
+    shutil.rmtree(render_dir)
+    render_s = time.perf_counter() - t0
+    result, solve_s = captures.solve(os.path.join(folder, "photos"), os.path.join(folder, "data"))
+    info = {"settings": _settings(args), "frames": frames, "render_s": render_s, "solve_s": solve_s,
+            "registered": len(result.registered), "photos": result.photos, "reprojection_error": result.reprojection_error,
+            **captures.score(os.path.join(folder, "data"), frames)}
+    with open(os.path.join(folder, "capture.json"), "w", encoding="utf-8") as f:
+        json.dump(info, f, indent=1)
+    return info
+
+
+def to_truth(folder, frames):
+    """(4, 4) the similarity from the solved frame to Blender's, fitted to the placed cameras."""
+    from photo_capture import similarity
+
+    pairs = captures.camera_pairs(os.path.join(folder, "data"), frames)
+    scale, rot, shift = similarity([s for s, _, _ in pairs], [c for _, _, c in pairs])
+    matrix = np.eye(4)
+    matrix[:3, :3], matrix[:3, 3] = scale * rot, shift
+    return matrix
+
+
+# ------------------------------------------------------------------ children: training and extraction
+def _train_child(args) -> None:
+    from mlx3d.datasets import load_dataset
+    from mlx3d.training import GaussianTrainer, TrainerConfig
+    from mlx3d.training.evaluate import BACKGROUNDS, evaluate
+    from mlx3d.training.initial import initial_state
+
+    dataset = load_dataset(args.data_dir)
+    config = TrainerConfig(method=args.child_train, steps=args.steps, background=BACKGROUNDS["black"], opaque_background="auto")
+    start = initial_state(dataset, config)
+    trainer = GaussianTrainer(start.model, start.config, scene_extent=dataset.scene_extent())
+    t0 = time.perf_counter()
+    trainer.fit(dataset)
+    seconds = time.perf_counter() - t0
+    trainer.model.save_ply(args.model)
+    report = evaluate(trainer.model, dataset, "test", BACKGROUNDS["black"])
+    print(json.dumps({"train_s": seconds, "psnr": report["psnr"], "gaussians": len(trainer.model), "train_peak_mb": peak_rss_mb()}))
+
+
+def _extract_child(args) -> None:
+    from mlx3d.datasets import load_dataset
+    from mlx3d.splatting import GaussianModel
+
+    dataset = load_dataset(args.data_dir)
+    cameras = [dataset.frames[i].camera for i in dataset.train]
+    model = GaussianModel.load(args.model)
+    t0 = time.perf_counter()
+    if args.child_extract == "fusion":
+        mesh = model.fused_mesh(cameras, resolution=args.resolution)
+    else:
+        mesh = model.surface_mesh(resolution=args.resolution, orient_towards=[c.center for c in cameras])
+    seconds = time.perf_counter() - t0
+    mesh.save_ply(args.mesh)
+    print(json.dumps({"extract_s": seconds, "extract_peak_mb": peak_rss_mb(), "faces": len(mesh.faces)}))
+
+
+def _child(kind: str, value: str, args, **extra) -> dict:
+    cmd = [sys.executable, os.path.abspath(__file__), f"--child-{kind}", value, "--data-dir", extra["data_dir"],
+           "--model", extra["model"], "--steps", str(args.steps), "--resolution", str(args.resolution)]
+    if "mesh" in extra:
+        cmd += ["--mesh", extra["mesh"]]
+    proc = subprocess.run(cmd, stdout=subprocess.PIPE, text=True)
+    lines = [line for line in proc.stdout.splitlines() if line.startswith("{")]
+    if proc.returncode != 0 or not lines:
+        raise RuntimeError(f"{kind} {value} failed (exit code {proc.returncode})")
+    return json.loads(lines[-1])
+
+
+# ------------------------------------------------------------------ measures
+def compare(mesh, truth) -> dict:
+    """Chamfer (% of the truth's diagonal), F-scores at ``THRESHOLDS`` and normal consistency of ``mesh``."""
+    from mlx3d.neighbors import knn
+
+    p, pn = sample_surface(mesh, SAMPLES, 1)
+    q, qn = sample_surface(truth, SAMPLES, 2)
+    to_truth_idx, to_truth = knn(q, 1, queries=p)
+    to_mesh_idx, to_mesh = knn(p, 1, queries=q)
+    to_truth, to_mesh = to_truth[:, 0].astype(np.float64), to_mesh[:, 0].astype(np.float64)
+    diagonal = float(np.linalg.norm(truth.vertices.max(0) - truth.vertices.min(0)))
+    out = {"chamfer_pct": 100.0 * 0.5 * (to_truth.mean() + to_mesh.mean()) / diagonal,
+           "accuracy_pct": 100.0 * to_truth.mean() / diagonal, "completeness_pct": 100.0 * to_mesh.mean() / diagonal,
+           "normal_consistency": float(0.5 * (np.abs(np.sum(pn * qn[to_truth_idx[:, 0]], axis=1)).mean()
+                                              + np.abs(np.sum(qn * pn[to_mesh_idx[:, 0]], axis=1)).mean()))}
+    for tau in THRESHOLDS:
+        precision, recall = float((to_truth <= tau * diagonal).mean()), float((to_mesh <= tau * diagonal).mean())
+        out[f"f_{tau * 100:g}"] = 2 * precision * recall / max(precision + recall, 1e-12)
+    return out
+
+
+def measure(row_dir, name, mesh_path, matrix, truth):
+    from mlx3d.io.mesh_ply import read_mesh_ply
+    from mlx3d.meshing import SurfaceMesh
+
+    mesh = read_mesh_ply(mesh_path)
+    aligned = SurfaceMesh(mesh.vertices @ matrix[:3, :3].T + matrix[:3, 3], mesh.faces, mesh.colors)
+    aligned.save_ply(os.path.join(row_dir, f"{name}_aligned.ply"))
+    return compare(aligned, truth)
+
+
+# ------------------------------------------------------------------ the page
+def table(rows) -> str:
+    head = ("| object | training | extraction | Chamfer (% of diagonal) | F-score 0.5 % | F-score 1 % | normal consistency | "
+            "accuracy (%) | completeness (%) | faces | held-out PSNR (dB) | train (s) | extract (s) | extract peak (MB) |")
+    out = [head, "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        out.append(f"| {r['object']} | {r['method']} {r['steps']:,} | {r['extraction']} {r['resolution']} | {r['chamfer_pct']:.3f} | "
+                   f"{r['f_0.5']:.3f} | {r['f_1']:.3f} | {r['normal_consistency']:.3f} | {r['accuracy_pct']:.3f} | "
+                   f"{r['completeness_pct']:.3f} | {r['faces']:,} | {r['psnr']:.2f} | {r['train_s']:.0f} | {r['extract_s']:.1f} | "
+                   f"{r['extract_peak_mb']:.0f} |")
+    return "\n".join(out)
+
+
+def write_page(path, rows, captured, load) -> None:
+    lines = ["# Meshes of objects with known surfaces", "",
+             "Each object is built with `bpy`, photographed with Cycles on a full orbit (60 photos, transparent background), "
+             "its cameras solved from the photos by `mlx3d poses`, trained without points, and meshed; the meshes are "
+             "compared with the object's own triangles after the similarity that maps the solved cameras onto Blender's "
+             "(`python bench/mesh_objects.py`; how each measure is defined is in its docstring).", "",
+             f"{machine_line()}, {datetime.date.today().isoformat()}; 1-minute load average during the run: "
+             f"median {load.get('median', float('nan')):.1f} on {os.cpu_count()} cores.", "",
+             "| object | photos placed | max rotation error | max position error |", "|---|---:|---:|---:|"]
+    for name, info in captured.items():
+        lines.append(f"| {name} | {info['registered']} of {info['photos']} | {info.get('rotation_deg', float('nan')):.2f}° | "
+                     f"{info.get('position_pct', float('nan')):.2f} % |")
+    lines += ["", table(rows), ""]
+    for name in captured:
+        picture = os.path.join(PICTURES, f"{name}.png")
+        if os.path.isfile(os.path.join(os.path.dirname(path), picture)):
+            lines += [f"**{name}** (truth, then each training and extraction, from a held-out camera):", "",
+                      f"![{name}: the true mesh and the extracted ones]({picture})", ""]
+    with open(path, "w", encoding="utf-8") as f:
+        f.write("\n".join(lines))
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--objects", default=",".join(OBJECTS))
+    parser.add_argument("--methods", default=",".join(METHODS))
+    parser.add_argument("--extract", default=",".join(EXTRACTIONS))
+    parser.add_argument("--steps", type=int, default=7000)
+    parser.add_argument("--size", type=int, default=320, help="photo width in pixels, height 3/4 of it (default 320)")
+    parser.add_argument("--samples", type=int, default=16, help="Cycles samples per pixel (default 16)")
+    parser.add_argument("--resolution", type=int, default=128, help="extraction resolution (default 128)")
+    parser.add_argument("--data", default=os.path.join(ROOT, "bench_data", "mesh_objects"))
+    parser.add_argument("--markdown", default=None, help="write the page here (e.g. docs/benchmarks/mesh_objects.md)")
+    parser.add_argument("--child-train", help=argparse.SUPPRESS)
+    parser.add_argument("--child-extract", help=argparse.SUPPRESS)
+    parser.add_argument("--data-dir", help=argparse.SUPPRESS)
+    parser.add_argument("--model", help=argparse.SUPPRESS)
+    parser.add_argument("--mesh", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.child_train:
+        _train_child(args)
+        return 0
+    if args.child_extract:
+        _extract_child(args)
+        return 0
+    objects = parse_only(parser, args.objects, OBJECTS, "object")
+    methods = parse_only(parser, args.methods, METHODS, "method")
+    extractions = parse_only(parser, args.extract, EXTRACTIONS, "extraction")
+    if args.size < 64 or args.steps < 1 or args.resolution < 8:
+        parser.error("--size must be at least 64, --steps at least 1 and --resolution at least 8")
+    args.dims = (args.size, (args.size * 3 // 4) // 2 * 2)
+
+    from mlx3d.io.mesh_ply import read_mesh_ply
+
+    load = LoadSampler()
+    load.start()
+    bpy = capture = None
+    rows, captured = [], {}
+    for name in objects:
+        folder = os.path.join(args.data, name)
+        info_path = os.path.join(folder, "capture.json")
+        info = json.load(open(info_path, encoding="utf-8")) if os.path.isfile(info_path) else None
+        if info is None or info["settings"] != _settings(args):
+            if bpy is None:
+                bpy = scenes._bpy()
+                from addon import capture
+            print(f"{name}: rendering {captures.OBJECT_VIEWS} photos and solving their cameras", file=sys.stderr, flush=True)
+            info = make_capture(bpy, capture, name, folder, args)
+        captured[name] = info
+        print(f"{name}: {info['registered']} of {info['photos']} photos placed", file=sys.stderr, flush=True)
+        matrix, truth = to_truth(folder, info["frames"]), read_mesh_ply(os.path.join(folder, "truth.ply"))
+        data = os.path.join(folder, "data")
+        meshes = [os.path.join(folder, "truth.ply")]
+        for method in methods:
+            model = os.path.join(folder, f"{method}_{args.steps}.ply")
+            trained = _child("train", method, args, data_dir=data, model=model)
+            for extraction in extractions:
+                mesh = os.path.join(folder, f"{method}_{args.steps}_{extraction}_{args.resolution}.ply")
+                extracted = _child("extract", extraction, args, data_dir=data, model=model, mesh=mesh)
+                row = {"object": name, "method": method, "steps": args.steps, "extraction": extraction,
+                       "resolution": args.resolution, **trained, **extracted,
+                       **measure(folder, os.path.basename(mesh)[:-4], mesh, matrix, truth)}
+                rows.append(row)
+                meshes.append(mesh[:-4] + "_aligned.ply")
+                print(table([row]).splitlines()[-1], file=sys.stderr, flush=True)
+        if args.markdown and len(meshes) > 1:
+            os.makedirs(os.path.join(DOCS, PICTURES), exist_ok=True)
+            held_out = next(c for s, t, c in captures.camera_pairs(data, info["frames"]) if t.get("held_out"))
+            labels = ["truth"] + [os.path.basename(m)[:-len("_aligned.ply")] for m in meshes[1:]]
+            render_meshes(meshes, labels, held_out, os.path.join(os.path.dirname(os.path.abspath(args.markdown)), PICTURES, f"{name}.png"))
+    load.stop.set()
+    load.join()
+    print(table(rows))
+    if args.markdown:
+        write_page(args.markdown, rows, captured, load.summary())
+        print(f"wrote {args.markdown}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
