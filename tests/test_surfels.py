@@ -227,6 +227,53 @@ def test_depth_normals_of_an_analytic_plane(model):
     assert unprojector.maps(cam)[0] is unprojector.maps(cam)[0]  # cached per camera
 
 
+def test_depth_variance_loss_is_the_2dgs_depth_distortion_per_unit_alpha():
+    """2DGS's depth distortion, as its rasterizer accumulates it front to back, is
+    ``sum_i w_i sum_{j<i} w_j (m_i - m_j)^2`` (w_i = alpha_i T_i). Ours is the same sum in camera z divided by
+    (alpha scale)^2, so its weight does not depend on a pixel's coverage or the scene's units (2DGS maps z to
+    NDC instead): checked on three discs along a ray against that sum written out here."""
+    cam = front_camera()
+    z, a = np.array([3.0, 3.4, 4.5]), np.array([0.5, 0.4, 0.7])
+    s = {"means": mx.array(np.float32([[0, zi - 4.0, 0] for zi in z])), "quats": mx.array(quat_from_z_to([[0, -1.0, 0]] * 3)),
+         "scales": mx.array(np.float32([[0.5, 0.5, 1e-3]] * 3)), "opacities": mx.array(a.astype(np.float32)), "colors": mx.zeros((3, 3))}
+    out = render_gaussians(cam, **s, render_depth_variance=True, planar_depth=True, backend=FAST)
+    i, j = cam.height // 2, cam.width // 2
+    w = a * np.concatenate([[1.0], np.cumprod(1 - a)[:-1]])  # the discs peak (G = 1) at the centre pixel
+    distortion = sum(w[k] * w[m] * (z[k] - z[m]) ** 2 for k in range(3) for m in range(k))
+    mask = np.zeros((cam.height, cam.width), np.float32)
+    mask[i, j] = 1.0
+    scale = 2.5
+    ours = geometry.depth_variance_loss(out["depth_variance"], out["alpha"] * mx.array(mask), 0.5, scale)  # that pixel alone
+    assert float(out["alpha"][i, j]) == pytest.approx(w.sum(), abs=1e-5)
+    assert float(ours) == pytest.approx(distortion / (w.sum() * scale) ** 2, rel=1e-3)
+
+
+def test_the_depth_the_normal_term_shapes_is_the_depth_fusion_reads_on_one_surface():
+    """Normal consistency differentiates the planar expected depth; mesh fusion reads the planar median depth.
+    Where a ray meets one surface (what the depth distortion term drives training to) they agree; where two
+    layers overlap, the median keeps the front one and the mean falls between."""
+    from mlx3d.render import render_gaussian_median_depth
+
+    cam = front_camera(48, 40)
+    for tilt in (0.0, 35.0):
+        s = plane_surfels(tilt_deg=tilt)
+        expected = render_gaussians(cam, **s, render_depth=True, planar_depth=True, backend=FAST)
+        median = render_gaussian_median_depth(cam, **{k: v for k, v in s.items() if k != "colors"}, planar=True, backend=FAST)
+        covered = np.array(expected["alpha"]) >= 0.9
+        assert covered.sum() > 500
+        np.testing.assert_allclose(np.array(median["depth"])[covered], np.array(expected["depth"])[covered], rtol=2e-3)
+    front, back = plane_surfels(), plane_surfels(seed=1)
+    front["opacities"] = mx.full(front["opacities"].shape, 0.15)  # covers the pixels a little over half
+    back["means"] = back["means"] + mx.array([0.0, 0.3, 0.0])
+    both = {k: mx.concatenate([front[k], back[k]]) for k in front}
+    expected = np.array(render_gaussians(cam, **both, render_depth=True, planar_depth=True, backend=FAST)["depth"])
+    median = np.array(render_gaussian_median_depth(cam, **{k: v for k, v in both.items() if k != "colors"}, planar=True, backend=FAST)["depth"])
+    centre = (cam.height // 2, cam.width // 2)
+    alone = float(render_gaussians(cam, **front, backend=FAST)["alpha"][centre])
+    assert 0.5 < alone < 0.9
+    assert median[centre] == pytest.approx(4.0, abs=2e-3) and expected[centre] > 4.05
+
+
 def test_normal_consistency_and_depth_variance_tell_surfels_on_a_surface_from_others():
     cam = front_camera(48, 40)
     unprojector = geometry.DepthUnprojector()
