@@ -16,17 +16,10 @@ per method. Each model is meshed by each extraction method at
 ``--resolution`` (fusion from the training cameras, Poisson with normals
 towards them), the mesh is taken into Blender's frame by the similarity that
 best maps the solved cameras onto the true ones, and compared with the
-object's own triangles (200k area-uniform samples on each):
-
-- Chamfer: the mean of both directions' mean nearest-sample distance, as a
-  percentage of the true mesh's bounding-box diagonal;
-- F-score at 0.5 % and 1 % of the diagonal: the harmonic mean of precision (the
-  share of the mesh's samples that close to the truth) and recall (the
-  share of the truth's samples that close to the mesh);
-- normal consistency: the mean |cos| between a sample's normal and its
-  nearest sample's on the other mesh;
-- train and extraction time, and the extraction's peak memory (its own
-  process).
+object's own triangles by ``bench/mesh_quality.py``'s measures (Chamfer and
+its two directions as percentages of the true mesh's bounding-box diagonal,
+F-scores at 0.5 % and 1 % of it, normal consistency), with the train and
+extraction time and the extraction's peak memory (its own process).
 
 Captures, trained models and meshes stay in ``--data`` (git-ignored); a
 capture is rebuilt only when its settings changed. The page gets the table,
@@ -55,13 +48,11 @@ sys.path.insert(0, os.path.join(ROOT, "tests"))  # photo_capture: the similarity
 import captures  # noqa: E402  (bench/ is on sys.path when run as a script)
 import scenes  # noqa: E402
 from common import LoadSampler, machine_line, parse_only, peak_rss_mb  # noqa: E402
-from mesh_quality import render_meshes, sample_surface  # noqa: E402
+from mesh_quality import compare, render_meshes  # noqa: E402
 
 OBJECTS = ("suzanne", "bumpy_sphere", "torus_knot")
 METHODS = ("vanilla", "2dgs")
 EXTRACTIONS = ("fusion", "poisson")
-SAMPLES = 200_000
-THRESHOLDS = (0.005, 0.01)  # F-score distances, fractions of the true bounding-box diagonal
 FORMAT_VERSION = 1
 DOCS = os.path.join(ROOT, "docs", "benchmarks")
 PICTURES = "mesh_objects"
@@ -236,26 +227,6 @@ def _child(kind: str, value: str, args, **extra) -> dict:
 
 
 # ------------------------------------------------------------------ measures
-def compare(mesh, truth) -> dict:
-    """Chamfer (% of the truth's diagonal), F-scores at ``THRESHOLDS`` and normal consistency of ``mesh``."""
-    from mlx3d.neighbors import knn
-
-    p, pn = sample_surface(mesh, SAMPLES, 1)
-    q, qn = sample_surface(truth, SAMPLES, 2)
-    to_truth_idx, to_truth = knn(q, 1, queries=p)
-    to_mesh_idx, to_mesh = knn(p, 1, queries=q)
-    to_truth, to_mesh = to_truth[:, 0].astype(np.float64), to_mesh[:, 0].astype(np.float64)
-    diagonal = float(np.linalg.norm(truth.vertices.max(0) - truth.vertices.min(0)))
-    out = {"chamfer_pct": 100.0 * 0.5 * (to_truth.mean() + to_mesh.mean()) / diagonal,
-           "accuracy_pct": 100.0 * to_truth.mean() / diagonal, "completeness_pct": 100.0 * to_mesh.mean() / diagonal,
-           "normal_consistency": float(0.5 * (np.abs(np.sum(pn * qn[to_truth_idx[:, 0]], axis=1)).mean()
-                                              + np.abs(np.sum(qn * pn[to_mesh_idx[:, 0]], axis=1)).mean()))}
-    for tau in THRESHOLDS:
-        precision, recall = float((to_truth <= tau * diagonal).mean()), float((to_mesh <= tau * diagonal).mean())
-        out[f"f_{tau * 100:g}"] = 2 * precision * recall / max(precision + recall, 1e-12)
-    return out
-
-
 def measure(row_dir, name, mesh_path, matrix, truth):
     from mlx3d.io.mesh_ply import read_mesh_ply
     from mlx3d.meshing import SurfaceMesh
@@ -263,7 +234,8 @@ def measure(row_dir, name, mesh_path, matrix, truth):
     mesh = read_mesh_ply(mesh_path)
     aligned = SurfaceMesh(mesh.vertices @ matrix[:3, :3].T + matrix[:3, 3], mesh.faces, mesh.colors)
     aligned.save_ply(os.path.join(row_dir, f"{name}_aligned.ply"))
-    return compare(aligned, truth)
+    scores = compare(aligned, truth)
+    return {**scores, **{f"{k}_pct": 100.0 * scores[k] / scores["diagonal"] for k in ("chamfer", "accuracy", "completeness")}}
 
 
 # ------------------------------------------------------------------ the page

@@ -6,12 +6,16 @@
 DATA_DIR is a captured dataset (``make demo`` writes ``demo_out/dataset``;
 its ``mesh.ply`` holds the captured surfaces, the ground truth). For each
 method: train in a fresh process (white background, as the demo), extract a
-mesh at ``--resolution`` with normals oriented towards the training cameras,
+mesh at ``--resolution`` by each of ``--extract`` (depth fusion from the
+training views; Poisson with normals oriented towards the training cameras),
 then report
 
 - Chamfer distance: the mean of both directions' mean nearest-neighbour
   distance between 200k area-uniform samples on each mesh, in scene units and
   as a fraction of the ground truth's bounding-box diagonal;
+- F-score at 0.5 % and 1 % of the diagonal: the harmonic mean of precision
+  (the share of the mesh's samples that close to the truth) and recall (the
+  share of the truth's samples that close to the mesh);
 - normal consistency: the mean |cos| between each sample's face normal and
   the normal at its nearest sample on the other mesh (1 = perfect);
 - train and extraction time.
@@ -72,18 +76,24 @@ def sample_surface(mesh, count: int, seed: int = 0):
 
 
 def compare(mesh, truth) -> dict:
-    """Chamfer distance and normal consistency of ``mesh`` against ``truth`` (see the module docstring)."""
+    """Chamfer distance, accuracy, completeness, F-scores at 0.5 % and 1 % of the truth's bounding-box diagonal
+    (``f_0.5``, ``f_1``) and normal consistency of ``mesh`` against ``truth`` (see the module docstring)."""
     from mlx3d.neighbors import knn
 
     p, pn = sample_surface(mesh, SAMPLES, 1)
     q, qn = sample_surface(truth, SAMPLES, 2)
     to_truth_idx, to_truth = knn(q, 1, queries=p)
     to_mesh_idx, to_mesh = knn(p, 1, queries=q)
+    to_truth, to_mesh = to_truth[:, 0].astype(np.float64), to_mesh[:, 0].astype(np.float64)
     chamfer = 0.5 * (float(to_truth.mean()) + float(to_mesh.mean()))
     nc = 0.5 * (np.abs(np.sum(pn * qn[to_truth_idx[:, 0]], axis=1)).mean() + np.abs(np.sum(qn * pn[to_mesh_idx[:, 0]], axis=1)).mean())
     diagonal = float(np.linalg.norm(truth.vertices.max(0) - truth.vertices.min(0)))
-    return {"chamfer": chamfer, "chamfer_frac": chamfer / diagonal, "normal_consistency": float(nc), "diagonal": diagonal,
-            "accuracy": float(to_truth.mean()), "completeness": float(to_mesh.mean())}
+    out = {"chamfer": chamfer, "chamfer_frac": chamfer / diagonal, "normal_consistency": float(nc), "diagonal": diagonal,
+           "accuracy": float(to_truth.mean()), "completeness": float(to_mesh.mean())}
+    for percent in (0.5, 1):  # precision: the mesh's samples that close to the truth; recall: the truth's to the mesh
+        precision, recall = float((to_truth <= percent / 100 * diagonal).mean()), float((to_mesh <= percent / 100 * diagonal).mean())
+        out[f"f_{percent:g}"] = 2 * precision * recall / max(precision + recall, 1e-12)
+    return out
 
 
 def render_meshes(paths: list, labels: list, camera, out_png: str) -> None:
@@ -145,6 +155,7 @@ def main() -> None:
     parser.add_argument("--methods", default="2dgs,vanilla")
     parser.add_argument("--steps", type=int, default=3000)
     parser.add_argument("--resolution", type=int, default=128)
+    parser.add_argument("--extract", default="fusion,poisson", help="extraction methods, comma-separated (default fusion,poisson)")
     parser.add_argument("--max-gaussians", type=int, default=60_000)
     parser.add_argument("--out", default="bench/out/mesh_quality")
     parser.add_argument("--markdown", metavar="PATH")
@@ -168,25 +179,30 @@ def main() -> None:
         cmd = [sys.executable, __file__, args.data, "--child", method, "--steps", str(args.steps), "--max-gaussians", str(args.max_gaussians), "--out", args.out]
         trained = json.loads(subprocess.run(cmd, stdout=subprocess.PIPE, text=True, check=True).stdout.strip().splitlines()[-1])
         model = GaussianModel.load_ply(ply)
-        t0 = time.perf_counter()
-        mesh = model.surface_mesh(resolution=args.resolution, orient_towards=centres)
-        extract_s = time.perf_counter() - t0
-        mesh_path = os.path.join(args.out, f"{method}_mesh.ply")
-        mesh.save_ply(mesh_path)
-        meshes.append((method, mesh_path))
-        rows.append({"method": method, **trained, "extract_s": extract_s, "faces": len(mesh.faces), **compare(mesh, truth)})
-        print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
+        for extraction in args.extract.split(","):
+            t0 = time.perf_counter()
+            if extraction == "fusion":
+                mesh = model.fused_mesh([dataset.frames[i].camera for i in dataset.train], resolution=args.resolution)
+            else:
+                mesh = model.surface_mesh(resolution=args.resolution, orient_towards=centres)
+            extract_s = time.perf_counter() - t0
+            mesh_path = os.path.join(args.out, f"{method}_{extraction}_mesh.ply")
+            mesh.save_ply(mesh_path)
+            meshes.append((f"{method}, {extraction}", mesh_path))
+            rows.append({"method": method, "extraction": extraction, **trained, "extract_s": extract_s, "faces": len(mesh.faces),
+                         **compare(mesh, truth)})
+            print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
     diagonal = rows[0]["diagonal"]
     lines = [
         f"Mesh extraction on {os.path.basename(os.path.abspath(args.data))} ({platform.machine()}, {os.cpu_count()} cores): {args.steps:,} training steps, "
         f"resolution {args.resolution}, ground-truth bounding-box diagonal {diagonal:.3f}",
         "",
-        "| method | train (s) | held-out PSNR (dB) | Gaussians | extract (s) | faces | Chamfer | Chamfer / diagonal | accuracy | completeness | normal consistency |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| method | extraction | train (s) | held-out PSNR (dB) | Gaussians | extract (s) | faces | Chamfer | Chamfer / diagonal | accuracy | completeness | normal consistency |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
         lines.append(
-            f"| {r['method']} | {r['train_s']:.0f} | {r['psnr']:.2f} | {r['gaussians']:,} | {r['extract_s']:.1f} | {r['faces']:,} | {r['chamfer']:.4f} | "
+            f"| {r['method']} | {r['extraction']} | {r['train_s']:.0f} | {r['psnr']:.2f} | {r['gaussians']:,} | {r['extract_s']:.1f} | {r['faces']:,} | {r['chamfer']:.4f} | "
             f"{100 * r['chamfer_frac']:.2f}% | {r['accuracy']:.4f} | {r['completeness']:.4f} | {r['normal_consistency']:.3f} |"
         )
     emit("\n".join(lines) + "\n", args.markdown)
