@@ -85,16 +85,38 @@ def cmd_compact(args) -> None:
     _print(workflows.export_splat_file(args.out, [obj], axis=args.axis)[1])
 
 
+def _dataset_cameras(path, splats) -> list:
+    """The training cameras of the dataset folder ``path`` (``mlx3d.datasets.load_dataset``), in world space:
+    the dataset's frame is the splat file's, placed by the splat object's transform (the --axis preset)."""
+    from dataclasses import replace
+
+    import numpy as np
+
+    from mlx3d.datasets import load_dataset
+
+    dataset = load_dataset(path)
+    cameras = [dataset.frames[i].camera for i in dataset.train]
+    if not cameras:
+        raise ValueError(f"{path}: the dataset has no training cameras")
+    to_file = np.linalg.inv(np.array(splats.matrix_world, dtype=np.float64))
+    if np.allclose(to_file, np.eye(4), rtol=0.0, atol=1e-12):
+        return cameras
+    return [replace(camera, viewmat=camera.viewmat @ to_file) for camera in cameras]
+
+
 def cmd_extract_mesh(args) -> None:
     from mlx3d.progress import ProgressLine
 
     _reset_scene()
     splats = _import(args.input, args)
-    job = workflows.MeshExtraction(splats, resolution=args.resolution, min_opacity=args.min_opacity, max_points=args.max_points, trim=args.trim)
+    bpy.context.view_layer.update()
+    cameras = _dataset_cameras(args.cameras_from, splats) if args.cameras_from else None
+    job = workflows.MeshExtraction(splats, method=args.method, cameras=cameras, resolution=args.resolution, cleanup=args.cleanup,
+                                   min_opacity=args.min_opacity, max_points=args.max_points, trim=args.trim)
     try:
         job.compute(ProgressLine("extract mesh"))
     except KeyboardInterrupt:
-        print("blender_splat extract-mesh: cancelled; nothing written", file=sys.stderr)
+        print(f"blender_splat {args.command}: cancelled; nothing written", file=sys.stderr)
         raise SystemExit(130) from None
     _, messages = job.add_object()
     _print(messages)
@@ -233,9 +255,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="blender_splat", description="Gaussian splat workflows in Blender, headless.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    def add(name, func, text, reads_splats=True, axis=True):
+    def add(name, func, text, reads_splats=True, axis=True, aliases=()):
         """A subcommand; the options of importing splat files only where it reads them, --axis where it reads or writes them."""
-        p = sub.add_parser(name, help=text, description=text)
+        p = sub.add_parser(name, help=text, description=text, aliases=list(aliases))
         p.set_defaults(func=func)
         if axis:
             p.add_argument("--axis", choices=sorted(workflows.AXIS_PRESETS), default="NONE", help="axis convention of the files (default NONE)")
@@ -271,13 +293,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--radius", type=float, default=None)
     p.add_argument("--min-neighbours", type=int, default=None)
 
-    p = add("extract-mesh", cmd_extract_mesh, "Extract a triangle mesh of the splats' surface and write it as a PLY (in the file's frame).")
+    text = ("Extract a triangle mesh of the splats' surface and write it as a PLY (in the file's frame): by depth fusion "
+            "(depth rendered from views of the splats, fused into a signed distance volume; unseen space left empty) or "
+            "Poisson reconstruction (a closed surface through the splats as discs). `mesh` is the same command.")
+    p = add("extract-mesh", cmd_extract_mesh, text, aliases=["mesh"])
     p.add_argument("input", metavar="IN")
     p.add_argument("--out", required=True, metavar="MESH.ply")
-    p.add_argument("--resolution", type=int, default=128, help="voxels along the longest side of the grid (default 128)")
-    p.add_argument("--min-opacity", type=float, default=0.01, help="leave out splats less opaque than this (default 0.01)")
-    p.add_argument("--max-points", type=int, default=200000, help="surface samples used at most, 0 for all (default 200000)")
-    p.add_argument("--trim", type=float, default=None, help=f"remove surface farther than this many voxels from any splat, 0 for off (default {workflows.DEFAULT_TRIM:g})")
+    p.add_argument("--method", choices=workflows.MESH_METHODS, default="fusion",
+                   help="fusion: depth maps into a signed distance volume, unseen space left empty (default); "
+                        "poisson: a closed surface through the splats as discs")
+    p.add_argument("--cameras-from", metavar="DATA_DIR",
+                   help="a dataset folder (COLMAP, NeRF-synthetic or nerfstudio) in the splat file's frame: fusion renders its "
+                        "training cameras, Poisson turns each splat's normal toward the nearest (default: 60 views around the splats)")
+    p.add_argument("--resolution", type=int, default=128, help="voxels along the longest side of the surface (fusion) or grid (Poisson) (default 128)")
+    p.add_argument("--cleanup", type=float, default=0.01, metavar="F",
+                   help="drop pieces with fewer faces than this fraction of the largest piece's, 0 keeps all (default 0.01)")
+    p.add_argument("--min-opacity", type=float, default=0.01, help="poisson: leave out splats less opaque than this (default 0.01)")
+    p.add_argument("--max-points", type=int, default=200000, help="poisson: surface samples used at most, 0 for all (default 200000)")
+    p.add_argument("--trim", type=float, default=None, help=f"poisson: remove surface farther than this many voxels from any splat, 0 for off (default {workflows.DEFAULT_TRIM:g})")
     p.add_argument("--save-blend", metavar="OUT.blend", help="also save the scene with the splat object and the mesh object")
 
     text = ("Render a .blend's scene from its camera: Blender's objects with the scene's engine, the splat objects with "

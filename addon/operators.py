@@ -792,16 +792,24 @@ class MLX3D_OT_render_animation(_ModalWork, bpy.types.Operator):
 
 
 class MLX3D_OT_extract_mesh(_ModalWork, bpy.types.Operator):
-    """Extract a triangle mesh of the active splat object's surface (Poisson reconstruction from the splats as surfels), coloured by the splats, as a child of the splat object. Esc cancels and adds nothing"""
+    """Extract a triangle mesh of the active splat object's surface as a child of the splat object: by depth fusion (depth and colour rendered from views around the splats or from a collection of cameras, unseen space left empty) or by Poisson reconstruction (a closed surface through the splats as discs). Esc cancels and adds nothing"""
 
     bl_idname = "mlx3d.extract_mesh"
     bl_label = "Extract Mesh"
     bl_options = {"REGISTER", "UNDO"}
 
-    resolution: IntProperty(name="Resolution", default=128, min=8, max=512, description="Voxels along the longest side of the grid (memory and time grow with its cube)")
-    min_opacity: FloatProperty(name="Min opacity", default=0.01, min=0.0, max=1.0, description="Leave out splats less opaque than this")
-    max_points: IntProperty(name="Max points", default=200000, min=0, description="Use at most this many splats as surface samples, the most important first (0: all)")
-    trim: FloatProperty(name="Trim", default=workflows.DEFAULT_TRIM, min=0.0, description="Remove surface farther than this many voxels from any splat (0: off)")
+    method: EnumProperty(name="Method", items=workflows.MESH_METHOD_ITEMS, default="FUSION", description="How the surface is found")
+    cameras: StringProperty(name="Cameras", default="",
+                            search=lambda self, context, text: [c.name for c in bpy.data.collections if any(o.type == "CAMERA" for o in c.all_objects)],
+                            description="Name of a collection of cameras to render the depth from (fusion; Poisson turns each splat's normal "
+                                        "toward the nearest), each at the scene's output resolution; empty: 60 views around the splats")
+    resolution: IntProperty(name="Resolution", default=128, min=8, max=512,
+                            description="Voxels along the longest side of the surface (fusion) or of the grid (Poisson); memory and time grow with its cube")
+    cleanup: FloatProperty(name="Cleanup", default=0.01, min=0.0, max=1.0,
+                           description="Drop pieces with fewer faces than this fraction of the largest piece's (0: keep every piece)")
+    min_opacity: FloatProperty(name="Min opacity", default=0.01, min=0.0, max=1.0, description="Poisson: leave out splats less opaque than this")
+    max_points: IntProperty(name="Max points", default=200000, min=0, description="Poisson: use at most this many splats as surface samples, the most important first (0: all)")
+    trim: FloatProperty(name="Trim", default=workflows.DEFAULT_TRIM, min=0.0, description="Poisson: remove surface farther than this many voxels from any splat (0: off)")
 
     @classmethod
     def poll(cls, context):
@@ -810,10 +818,22 @@ class MLX3D_OT_extract_mesh(_ModalWork, bpy.types.Operator):
         cls.poll_message_set("the active object is not a splat object")
         return False
 
-    def _job(self, context):
-        return workflows.MeshExtraction(context.active_object, resolution=self.resolution, min_opacity=self.min_opacity,
-                                        max_points=self.max_points, trim=self.trim)
+    def _cameras(self):
+        """The camera objects of the collection named by ``cameras`` (sorted by name), or None for views around the splats."""
+        if not self.cameras:
+            return None
+        collection = bpy.data.collections.get(self.cameras)
+        if collection is None:
+            raise workflows.MeshingError(f"no collection named '{self.cameras}' (choose a collection of cameras, or none for views around the splats)")
+        cameras = sorted((o for o in collection.all_objects if o.type == "CAMERA"), key=lambda o: o.name)
+        if not cameras:
+            raise workflows.MeshingError(f"the collection '{self.cameras}' holds no camera")
+        return cameras
 
+    def _job(self, context):
+        return workflows.MeshExtraction(context.active_object, method=self.method.lower(), cameras=self._cameras(),
+                                        resolution=self.resolution, cleanup=self.cleanup, min_opacity=self.min_opacity,
+                                        max_points=self.max_points, trim=self.trim)
 
     def _add(self, context, job):
         try:
@@ -851,8 +871,17 @@ class MLX3D_OT_extract_mesh(_ModalWork, bpy.types.Operator):
             self._session = None
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
-        self._session.start()
-        return self._start_modal(context, 100, f"Extracting mesh from '{self._session.source_name}' (Esc to cancel)")
+        job = self._session
+        if not job.views_left:  # Poisson: straight to the worker
+            job.start()
+        return self._start_modal(context, 100, self._text(job))
+
+    def _text(self, job):
+        if job.views_left:
+            done, count = len(job.views), len(job.cameras)
+            return f"Extracting mesh from '{job.source_name}': rendering view {done + 1}/{count} (Esc to cancel)"
+        done, total = job.progress
+        return f"Extracting mesh from '{job.source_name}': {int(100 * done / max(total, 1))}% (Esc to cancel)"
 
     def _escape(self, context):
         job = self._session
@@ -863,14 +892,22 @@ class MLX3D_OT_extract_mesh(_ModalWork, bpy.types.Operator):
 
     def _tick(self, context):
         job = self._session
-        if job.running:
-            done, total = job.progress
-            percent = int(100 * done / max(total, 1))
-            context.window_manager.progress_update(percent)
-            self._header(f"Extracting mesh from '{job.source_name}': {percent}% (Esc to cancel)")
-            return {"RUNNING_MODAL"}
-        self._stop(context)
-        return self._add(context, job)
+        if job.views_left:  # one view per tick, on the main thread (MLX), so Blender stays responsive
+            try:
+                job.render_next()
+            except (ValueError, OSError, RuntimeError, MemoryError) as exc:
+                self._stop(context)
+                self.report({"ERROR"}, str(exc))
+                return {"CANCELLED"}
+            if not job.views_left:
+                job.start()  # fusing needs no MLX: on the worker thread
+        elif not job.running:
+            self._stop(context)
+            return self._add(context, job)
+        done, total = job.progress
+        context.window_manager.progress_update(int(100 * done / max(total, 1)))
+        self._header(self._text(job))
+        return {"RUNNING_MODAL"}
 
     def cancel(self, context):
         # Blender ends the operator (a file is loaded, the window closes): stop the worker, add nothing.

@@ -22,10 +22,15 @@ class MLX3D_PG_settings(bpy.types.PropertyGroup):
     compact_max: IntProperty(name="Max splats", default=0, min=0, description="0: no limit")
     compact_min_opacity: FloatProperty(name="Min opacity", default=0.0, min=0.0, max=1.0)
     compact_sh: EnumProperty(name="SH degree", items=operators.KEEP_SH_ITEMS, default="KEEP")
-    mesh_resolution: IntProperty(name="Resolution", default=128, min=8, max=512, description="Voxels along the longest side of the grid")
-    mesh_min_opacity: FloatProperty(name="Min opacity", default=0.01, min=0.0, max=1.0, description="Leave out splats less opaque than this")
-    mesh_max_points: IntProperty(name="Max points", default=200000, min=0, description="Surface samples used at most (0: all)")
-    mesh_trim: FloatProperty(name="Trim", default=workflows.DEFAULT_TRIM, min=0.0, description="Remove surface farther than this many voxels from any splat (0: off)")
+    mesh_method: EnumProperty(name="Method", items=workflows.MESH_METHOD_ITEMS, default="FUSION", description="How the surface is found")
+    mesh_cameras: PointerProperty(name="Cameras", type=bpy.types.Collection, poll=lambda self, coll: any(o.type == "CAMERA" for o in coll.all_objects),
+                                  description="A collection of cameras to render the depth from (fusion; Poisson turns each splat's normal toward "
+                                              "the nearest), each at the scene's output resolution; none: 60 views around the splats")
+    mesh_resolution: IntProperty(name="Resolution", default=128, min=8, max=512, description="Voxels along the longest side of the surface (fusion) or of the grid (Poisson)")
+    mesh_cleanup: FloatProperty(name="Cleanup", default=0.01, min=0.0, max=1.0, description="Drop pieces with fewer faces than this fraction of the largest piece's (0: keep every piece)")
+    mesh_min_opacity: FloatProperty(name="Min opacity", default=0.01, min=0.0, max=1.0, description="Poisson: leave out splats less opaque than this")
+    mesh_max_points: IntProperty(name="Max points", default=200000, min=0, description="Poisson: surface samples used at most (0: all)")
+    mesh_trim: FloatProperty(name="Trim", default=workflows.DEFAULT_TRIM, min=0.0, description="Poisson: remove surface farther than this many voxels from any splat (0: off)")
     render_antialias: BoolProperty(name="Antialias", default=False)
     render_path: bpy.props.StringProperty(name="Save to", subtype="FILE_PATH", default="", options=operators.BLEND_RELATIVE_PATH)
     capture_dir: bpy.props.StringProperty(name="Folder", subtype="DIR_PATH", default="", description="Output folder of the dataset", options=operators.BLEND_RELATIVE_PATH)
@@ -142,8 +147,19 @@ class VIEW3D_PT_mlx3d_splats(_SplatsTab, bpy.types.Panel):
 
         _section(layout, "Compact", settings, operators.MLX3D_OT_compact, "MOD_DECIM",
                  {"max_gaussians": "compact_max", "min_opacity": "compact_min_opacity", "sh_degree": "compact_sh"})
-        _section(layout, "Surface mesh", settings, operators.MLX3D_OT_extract_mesh, "OUTLINER_OB_MESH",
-                 {"resolution": "mesh_resolution", "min_opacity": "mesh_min_opacity", "max_points": "mesh_max_points", "trim": "mesh_trim"})
+        fields = {"method": "mesh_method", "resolution": "mesh_resolution", "cleanup": "mesh_cleanup"}
+        if settings.mesh_method == "POISSON":
+            fields.update(min_opacity="mesh_min_opacity", max_points="mesh_max_points", trim="mesh_trim")
+        col = layout.column(align=True)
+        col.label(text="Surface mesh")
+        col.prop(settings, "mesh_method", text="")
+        col.prop(settings, "mesh_cameras")
+        for setting in list(fields.values())[1:]:
+            col.prop(settings, setting)
+        op = col.operator(operators.MLX3D_OT_extract_mesh.bl_idname, icon="OUTLINER_OB_MESH")
+        for prop, setting in fields.items():
+            setattr(op, prop, getattr(settings, setting))
+        op.cameras = settings.mesh_cameras.name if settings.mesh_cameras else ""  # the operator takes the collection's name
         col = _section(layout, "Render (scene camera)", settings, operators.MLX3D_OT_render, "RENDER_STILL",
                        {"antialias": "render_antialias", "filepath": "render_path"})
         op = col.operator(operators.MLX3D_OT_render_animation.bl_idname, icon="RENDER_ANIMATION")

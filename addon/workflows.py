@@ -22,7 +22,7 @@ from mlx3d.floaters import radius_outliers, statistical_outliers
 from mlx3d.io import FORMATS, detect_format, format_for_path
 from mlx3d.io import read_splats as read_splat_file
 from mlx3d.io import write_splats as write_splat_file
-from mlx3d.meshing import DEFAULT_TRIM, MeshingError, SurfaceMesh, reconstruct_surface
+from mlx3d.meshing import DEFAULT_TRIM, MeshingError, SurfaceMesh, keep_large_components, reconstruct_surface
 from mlx3d.splatting import GaussianModel, merge_splats
 
 from .camera import camera_from_blender
@@ -261,82 +261,210 @@ def splat_info(obj) -> dict:
 # ------------------------------------------------------------------ surface mesh
 MESH_MATERIAL = "MLX3D Mesh"
 MESH_COLOR_ATTRIBUTE = "Color"
+#: How ``MeshExtraction`` meshes: (identifier, label, description), as the operator and the panel show them.
+MESH_METHOD_ITEMS = [
+    ("FUSION", "Depth fusion", "Depth rendered from views of the splats, fused into a signed distance volume; "
+     "space no view saw is left empty (open where unseen, no invented surface)"),
+    ("POISSON", "Poisson", "A closed surface through the splats read as oriented discs (Poisson reconstruction); "
+     "fills unseen parts"),
+]
+MESH_METHODS = tuple(item[0].lower() for item in MESH_METHOD_ITEMS)
+#: Splats less opaque than this are skipped by the rasterizer, so fusion cannot see them.
+_VISIBLE_OPACITY = 1.0 / 255.0
 
 
 class ExtractionCancelled(Exception):
     """Raised through the meshing progress callback to stop an extraction; nothing is added to the scene."""
 
 
-class MeshExtraction(WorkerJob):
-    """One surface-mesh extraction from a splat object, in three steps:
+def _render_cameras(cameras, scene) -> list:
+    """``mlx3d.cameras.Camera`` (world frame) of ``cameras``: Blender camera objects or Cameras, in order."""
+    from mlx3d.cameras import Camera
 
-    - the constructor (main thread) checks the object, reads its splats in its
-      own (local) frame and turns them into oriented surfels
-      (``GaussianModel.surfel_samples``, the only step that uses MLX); bad
-      input raises here, before the long part;
-    - ``compute(progress)`` reconstructs the surface from them
-      (``mlx3d.meshing.reconstruct_surface``, numpy only, exactly what
-      ``GaussianModel.surface_mesh`` does) and touches no Blender
-      data, so it may run on a worker thread: ``start()`` runs it on one,
-      ``running`` and ``progress`` (done, total) follow it and ``cancel()``
-      stops it at its next progress report;
+    out = []
+    for cam in cameras:
+        if isinstance(cam, Camera):
+            out.append(cam)
+        elif getattr(cam, "type", None) == "CAMERA":
+            out.append(camera_from_blender(cam, scene))
+        else:
+            what = f"'{cam.name}' ({cam.type.lower()} object)" if hasattr(cam, "name") and hasattr(cam, "type") else repr(cam)
+            raise MeshingError(f"{what} is not a camera: the mesh is rendered from camera objects")
+    return out
+
+
+class MeshExtraction(WorkerJob):
+    """One surface-mesh extraction from a splat object.
+
+    - The constructor (main thread) checks the object and the options and reads
+      the splats; bad input raises here, before the long part. ``method``
+      ``'fusion'`` puts them in world space (the object's world matrix, any
+      affine) and picks the cameras; ``'poisson'`` turns them into oriented
+      surfels in the object's frame (``GaussianModel.surfel_samples``).
+    - Fusion only: ``render_next()`` renders the depth and colour of one view
+      (MLX, so on the main thread); ``views_left`` counts those still to render.
+    - ``compute(progress)`` renders what is left (main thread) and meshes:
+      ``mlx3d.meshing.fuse_depth_maps`` of the views, brought back to the
+      object's frame, or ``reconstruct_surface`` of the surfels; then drops
+      pieces under ``cleanup`` times the largest (``keep_large_components``).
+      ``start()`` runs it on a worker thread once every view is rendered
+      (``work()`` refuses otherwise); ``running`` and ``progress`` (done,
+      total; fusion: one per view rendered, then two per view fused, total 3 x
+      views) follow it; ``cancel()`` stops it at its next progress report.
     - ``add_object()`` (main thread) builds the mesh object from the result,
       or raises the error the computation raised. Nothing is added before it.
 
     Options as ``extract_mesh``.
     """
 
-    def __init__(self, obj, *, resolution=128, min_opacity=0.01, max_points=200000, trim=None, camera_centres=None,
-                 name=None, collection=None, padding=0.1):
+    def __init__(self, obj, *, method="fusion", cameras=None, resolution=128, cleanup=0.01, min_opacity=0.01,
+                 max_points=200000, trim=None, camera_centres=None, name=None, collection=None, padding=0.1):
         if obj is None or not is_splat_object(obj):
             what = "no active object" if obj is None else f"'{obj.name}' is not a splat object"
             raise SplatObjectError(f"{what}: choose a point cloud imported as Gaussian splats to extract a mesh from")
         self.t0 = time.perf_counter()
         self.source, self.source_name = obj, obj.name
+        self.method = str(method).lower()
+        if self.method not in MESH_METHODS:
+            raise MeshingError(f"unknown mesh method {method!r}; use one of {', '.join(MESH_METHODS)}")
         self.name = name or f"{obj.name} mesh"
         self.collection = collection
         self.resolution = int(resolution)
-        self.options = dict(resolution=self.resolution, padding=float(padding), trim=DEFAULT_TRIM if trim is None else float(trim))
+        self.cleanup = float(cleanup or 0.0)
+        if not 0.0 <= self.cleanup <= 1.0:
+            raise MeshingError(f"cleanup must be a fraction in [0, 1], got {cleanup!r}")
         if len(obj.data.points) == 0:
             raise MeshingError(f"'{obj.name}' holds no splats; nothing to mesh")
         arrays, _ = read_splats(obj)
         self.count = arrays.count
-        centres = None
-        if camera_centres is not None:  # world space -> the object's frame
-            bpy.context.view_layer.update()
-            to_local = np.linalg.inv(object_matrix(obj))
-            centres = np.asarray(camera_centres, dtype=np.float64).reshape(-1, 3) @ to_local[:3, :3].T + to_local[:3, 3]
-        self.surfels = GaussianModel.from_arrays(arrays).surfel_samples(float(min_opacity), int(max_points) if max_points else None, centres)
-        if len(self.surfels[0]) == 0:
-            raise MeshingError(f"no splat of '{obj.name}' has opacity >= {min_opacity:g} (of {self.count:,}); nothing to mesh")
+        bpy.context.view_layer.update()  # matrix_world is stale until the view layer updates
+        self.matrix = object_matrix(obj)  # the object's frame -> world
+        if cameras is not None:
+            cameras = list(cameras)
+            if not cameras:
+                raise MeshingError(f"no cameras to render '{obj.name}' from (pass None for views around it)")
+            cameras = _render_cameras(cameras, bpy.context.scene)
+        self.cameras, self.views, self.surfels = [], [], None
+        if self.method == "fusion":
+            self._prepare_fusion(arrays, cameras)
+        else:
+            self.options = dict(resolution=self.resolution, padding=float(padding), trim=DEFAULT_TRIM if trim is None else float(trim))
+            if camera_centres is None and cameras is not None:
+                camera_centres = [camera.center for camera in cameras]
+            centres = None
+            if camera_centres is not None:  # world space -> the object's frame
+                to_local = np.linalg.inv(self.matrix)
+                centres = np.asarray(camera_centres, dtype=np.float64).reshape(-1, 3) @ to_local[:3, :3].T + to_local[:3, 3]
+            self.surfels = GaussianModel.from_arrays(arrays).surfel_samples(float(min_opacity), int(max_points) if max_points else None, centres)
+            if len(self.surfels[0]) == 0:
+                raise MeshingError(f"no splat of '{obj.name}' has opacity >= {min_opacity:g} (of {self.count:,}); nothing to mesh")
         self.surface = self.mesh = None
-        self.progress = (0, 1)
+        self.progress = (0, self.total)
         super().__init__()
         self.thread_name = f"mlx3d mesh {self.source_name}"
 
-    # -- computation (any thread)
-    def _report(self, progress):
+    def _prepare_fusion(self, arrays, cameras):
+        from mlx3d.meshing.fusion import is_surfel_model, orbit_cameras
+
+        if self.resolution < 8:
+            raise MeshingError(f"resolution must be at least 8 voxels, got {self.resolution}")
+        if not np.isfinite(self.matrix).all() or abs(np.linalg.det(self.matrix[:3, :3])) < 1e-12:
+            raise MeshingError(f"'{self.source_name}' has a degenerate transform (a zero scale); nothing to mesh")
+        if not (arrays.opacities >= np.log(_VISIBLE_OPACITY / (1.0 - _VISIBLE_OPACITY))).any():
+            raise MeshingError(f"no splat of '{self.source_name}' is opaque enough to be rendered "
+                               f"(opacity >= 1/255, of {self.count:,}); nothing to mesh")
+        model = GaussianModel.from_arrays(arrays)
+        self.model = model if np.array_equal(self.matrix, np.eye(4)) else model.transform(self.matrix)  # world space
+        self.cameras = orbit_cameras(self.model) if cameras is None else cameras
+        self.planar = is_surfel_model(self.model)
+
+    # -- progress
+    @property
+    def total(self) -> int:
+        """Progress steps of the whole extraction: fusion 3 per view; Poisson 1 until its solver reports its own."""
+        return 3 * len(self.cameras) if self.method == "fusion" else 1
+
+    @property
+    def views_left(self) -> int:
+        """Views still to render (``render_next``); always 0 for Poisson."""
+        return len(self.cameras) - len(self.views)
+
+    @property
+    def cancelled(self) -> bool:
+        return self._cancel.is_set()
+
+    def _check_cancel(self):
+        if self._cancel.is_set():
+            raise ExtractionCancelled(f"mesh extraction from '{self.source_name}' cancelled")
+
+    def _report(self, progress, offset=None):
+        """A ``progress(done, total)`` that raises ``ExtractionCancelled`` after ``cancel()``; fusion's
+        reports are shifted by ``offset`` steps within ``total``."""
         def report(done, total):
-            if self._cancel.is_set():
-                raise ExtractionCancelled(f"mesh extraction from '{self.source_name}' cancelled")
+            self._check_cancel()
+            if offset is not None:
+                done, total = offset + done, self.total
             self.progress = (done, total)
             if progress is not None:
                 progress(done, total)
         return report
 
+    # -- rendering (fusion; main thread)
+    def render_next(self, progress=None) -> bool:
+        """Render the depth and colour of the next view (MLX: call on the main thread); True while views remain."""
+        if self.views_left == 0:
+            return False
+        self._check_cancel()
+        self.views.append(self._render(self.cameras[len(self.views)]))
+        self._report(progress, 0)(len(self.views), self.total)
+        return self.views_left > 0
+
+    def _render(self, camera):
+        import mlx.core as mx
+
+        from mlx3d.meshing.fusion import EMPTY_ALPHA, DepthView, depth_views
+
+        try:
+            return depth_views(self.model, [camera], planar=self.planar)[0]
+        except MeshingError:  # this view sees no surface; its empty pixels still carve space
+            alpha = np.array(self.model.render(camera, background=mx.zeros(3))["alpha"], dtype=np.float32)
+            return DepthView(camera, np.where(alpha < EMPTY_ALPHA, np.inf, np.nan))
+
+    # -- meshing (any thread once the views are rendered)
+    def _fuse(self, progress):
+        from mlx3d.meshing import fuse_depth_maps
+        from mlx3d.meshing.fusion import MIN_ALPHA
+
+        if not any(np.isfinite(view.depth).any() for view in self.views):
+            raise MeshingError(f"the splats of '{self.source_name}' cover no pixel of the {len(self.views)} views to opacity "
+                               f"{MIN_ALPHA:g}: nothing to mesh (the cameras look away from them, or they are too transparent)")
+        surface = fuse_depth_maps(self.views, self.resolution, progress=self._report(progress, len(self.cameras)))
+        to_local = np.linalg.inv(self.matrix)  # world -> the object's frame
+        vertices = surface.vertices.astype(np.float64) @ to_local[:3, :3].T + to_local[:3, 3]
+        return SurfaceMesh(vertices, surface.faces, surface.colors)
+
     def compute(self, progress=None):
-        """The surface (an ``mlx3d.meshing.SurfaceMesh``, in the object's frame); raises ``MeshingError`` for bad input."""
-        surface = reconstruct_surface(*self.surfels, progress=self._report(progress), **self.options)
-        self._report(None)(1, 1)  # a cancel that came after the last report still counts
+        """The surface (an ``mlx3d.meshing.SurfaceMesh``, in the object's frame); raises ``MeshingError`` for bad input.
+        Fusion renders the views left first, so call it on the main thread unless every view is rendered."""
+        if self.method == "fusion":
+            while self.views_left:
+                self.render_next(progress)
+            surface = self._fuse(progress)
+        else:
+            surface = reconstruct_surface(*self.surfels, progress=self._report(progress), **self.options)
+        if self.cleanup:
+            surface = keep_large_components(surface, self.cleanup)
+        self._check_cancel()  # a cancel that came after the last report still counts
+        self.progress = (self.total, self.total) if self.method == "fusion" else (1, 1)
         self.surface = surface
         return surface
 
     def work(self):
+        self._check_cancel()
+        if self.views_left:
+            raise RuntimeError(f"{self.views_left} of {len(self.cameras)} views of '{self.source_name}' are not rendered: "
+                               "call render_next() on the main thread until none is left before start()")
         self.compute()
-
-    @property
-    def cancelled(self) -> bool:
-        return self._cancel.is_set()
 
     def add_object(self):
         """The mesh object, parented to the splat object with an identity parent inverse; (object, messages)."""
@@ -355,8 +483,9 @@ class MeshExtraction(WorkerJob):
         collection = self.collection or (self.source.users_collection[0] if self.source.users_collection else bpy.context.collection)
         obj = new_mesh_object(self.name, vertices, faces, colors, collection=collection, parent=self.source)
         seconds = time.perf_counter() - self.t0
+        how = f"fusion of {len(self.cameras)} views" if self.method == "fusion" else "Poisson"
         return obj, [
-            f"extracted '{obj.name}' from '{self.source_name}' ({self.count:,} splats, resolution {self.resolution}): "
+            f"extracted '{obj.name}' from '{self.source_name}' ({self.count:,} splats, {how}, resolution {self.resolution}): "
             f"{len(vertices):,} vertices, {len(faces):,} faces in {seconds:.1f} s"
         ]
 
@@ -437,28 +566,38 @@ def new_mesh_object(name, vertices, faces, colors=None, *, collection, parent=No
     return obj
 
 
-def extract_mesh(obj, *, resolution=128, min_opacity=0.01, max_points=200000, trim=None, name=None, collection=None,
-                 camera_centres=None, progress=None):
+def extract_mesh(obj, *, method="fusion", cameras=None, resolution=128, cleanup=0.01, min_opacity=0.01, max_points=200000,
+                 trim=None, name=None, collection=None, camera_centres=None, progress=None):
     """A triangle mesh of the splats' surface as a new mesh object under the splat object.
 
-    The splats are read in the object's own frame and meshed by
-    ``GaussianModel.surface_mesh`` (resolution: voxels along the
-    longest side of the grid; min_opacity: splats below it are left out;
-    max_points: at most this many surfels (None or 0: all); trim: voxels,
-    0 = off, None = mlx3d's default; camera_centres: (C,3) world positions,
-    e.g. of the training cameras: each splat's normal is turned to face the
-    nearest; None keeps each splat's own normal, the axis of its smallest
-    scale as its rotation gives it). The
-    object, named ``name`` (default "<splat object> mesh") and linked to
+    method: ``'fusion'`` (default): depth and colour rendered from ``cameras``
+    (Blender camera objects, each at the scene's output size, or
+    ``mlx3d.cameras.Camera`` in world space; None: 60 views of 512 x 512 pixels
+    around the splats, ``mlx3d.meshing.fusion.orbit_cameras``), fused into a
+    truncated signed distance volume over the splats in world space (so any
+    object transform is exact), and its zero level brought back to the
+    object's frame; space no view saw is left empty. ``'poisson'``: the splats
+    read in the object's frame as oriented discs and meshed by
+    ``GaussianModel.surface_mesh`` (min_opacity: splats below it are left out;
+    max_points: at most this many surfels, None or 0: all; trim: voxels, 0 =
+    off, None = mlx3d's default; camera_centres: (C,3) world positions, by
+    default the centres of ``cameras``: each splat's normal is turned to face
+    the nearest; without them each splat keeps its own normal, the axis of its
+    smallest scale). resolution: voxels along the longest side of the seen
+    surface (fusion) or of the grid (Poisson). cleanup: pieces with fewer
+    faces than this fraction of the largest piece's are dropped (0 keeps all).
+
+    The object, named ``name`` (default "<splat object> mesh") and linked to
     ``collection`` (default the splat object's), is parented to the splat
     object with an identity parent inverse, so its world matrix is the splat
-    object's; its vertex colours are the splats' base colour. progress:
-    ``progress(done, total)``, which may raise to cancel. Returns (object,
-    messages). Bad input (not a splat object, no splats, none opaque enough)
-    raises a ``ValueError`` (``MeshingError``, ``SplatObjectError``) and adds
-    nothing.
+    object's; its vertex colours are the rendered colours (fusion) or the
+    splats' base colour (Poisson). progress: ``progress(done, total)``, which
+    may raise to cancel. Returns (object, messages). Bad input (not a splat
+    object, no splats, none opaque enough, an object in ``cameras`` that is
+    not a camera) raises a ``ValueError`` (``MeshingError``,
+    ``SplatObjectError``) and adds nothing.
     """
-    job = MeshExtraction(obj, resolution=resolution, min_opacity=min_opacity, max_points=max_points, trim=trim,
-                         camera_centres=camera_centres, name=name, collection=collection)
+    job = MeshExtraction(obj, method=method, cameras=cameras, resolution=resolution, cleanup=cleanup, min_opacity=min_opacity,
+                         max_points=max_points, trim=trim, camera_centres=camera_centres, name=name, collection=collection)
     job.compute(progress)
     return job.add_object()
