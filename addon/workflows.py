@@ -420,24 +420,16 @@ class MeshExtraction(WorkerJob):
         return self.views_left > 0
 
     def _render(self, camera):
-        import mlx.core as mx
+        from mlx3d.meshing.fusion import depth_views
 
-        from mlx3d.meshing.fusion import EMPTY_ALPHA, DepthView, depth_views
-
-        try:
-            return depth_views(self.model, [camera], planar=self.planar)[0]
-        except MeshingError:  # this view sees no surface; its empty pixels still carve space
-            alpha = np.array(self.model.render(camera, background=mx.zeros(3))["alpha"], dtype=np.float32)
-            return DepthView(camera, np.where(alpha < EMPTY_ALPHA, np.inf, np.nan))
+        return depth_views(self.model, [camera], planar=self.planar)[0]
 
     # -- meshing (any thread once the views are rendered)
     def _fuse(self, progress):
         from mlx3d.meshing import fuse_depth_maps
-        from mlx3d.meshing.fusion import MIN_ALPHA
+        from mlx3d.meshing.fusion import require_surface
 
-        if not any(np.isfinite(view.depth).any() for view in self.views):
-            raise MeshingError(f"the splats of '{self.source_name}' cover no pixel of the {len(self.views)} views to opacity "
-                               f"{MIN_ALPHA:g}: nothing to mesh (the cameras look away from them, or they are too transparent)")
+        require_surface(self.views, what=f"the splats of '{self.source_name}'")
         surface = fuse_depth_maps(self.views, self.resolution, progress=self._report(progress, len(self.cameras)))
         to_local = np.linalg.inv(self.matrix)  # world -> the object's frame
         vertices = surface.vertices.astype(np.float64) @ to_local[:3, :3].T + to_local[:3, 3]

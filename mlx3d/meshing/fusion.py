@@ -371,10 +371,14 @@ def depth_views(model, cameras, depth: str = "median", min_alpha: float = MIN_AL
         views.append(DepthView(camera, z, np.clip(color, 0.0, 1.0)))
         if progress is not None:
             progress(n + 1, len(cameras))
-    if not any(np.isfinite(v.depth).any() for v in views):
-        raise MeshingError(f"the splats cover no pixel of the {len(views)} views to opacity {min_alpha}: nothing to mesh "
-                           "(the model is transparent there, or the cameras look away from it)")
     return views
+
+
+def require_surface(views, min_alpha: float = MIN_ALPHA, what: str = "the splats") -> None:
+    """Raises ``MeshingError`` when none of ``views`` (from :func:`depth_views`) sees a surface."""
+    if not any(np.isfinite(v.depth).any() for v in views):
+        raise MeshingError(f"{what} cover no pixel of the {len(views)} views to opacity {min_alpha:g}: nothing to mesh "
+                           "(they are too transparent there, or the cameras look away from them)")
 
 
 def orbit_cameras(model, count: int = 60, size: int = 512, min_opacity: float = 0.5) -> list:

@@ -619,12 +619,13 @@ class GaussianModel:
         piece's are dropped (0 keeps all). In the model's frame and units. ``progress(done, total)`` may raise
         to cancel. Raises ``MeshingError`` when the cameras see no surface.
         """
-        from ..meshing.fusion import depth_views, fuse_depth_maps, keep_large_components, orbit_cameras
+        from ..meshing.fusion import depth_views, fuse_depth_maps, keep_large_components, orbit_cameras, require_surface
 
         cameras = orbit_cameras(self) if cameras is None else list(cameras)
         count = len(cameras)
         report = None if progress is None else (lambda offset: lambda done, total: progress(offset + done, 3 * count))
         views = depth_views(self, cameras, depth, min_alpha, progress=None if report is None else report(0))
+        require_surface(views, min_alpha)
         mesh = fuse_depth_maps(views, resolution, voxel_size, truncation, progress=None if report is None else report(count))
         return keep_large_components(mesh, cleanup) if cleanup else mesh
 
