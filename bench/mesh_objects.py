@@ -341,6 +341,8 @@ def main() -> int:
             held_out = next(c for s, t, c in captures.camera_pairs(data, info["frames"]) if t.get("held_out"))
             labels = ["truth"] + [os.path.basename(m)[:-len("_aligned.ply")] for m in meshes[1:]]
             render_meshes(meshes, labels, held_out, os.path.join(os.path.dirname(os.path.abspath(args.markdown)), PICTURES, f"{name}.png"))
+        if args.markdown:  # after every object, so that a long run stopped early keeps what it measured
+            write_page(args.markdown, rows, captured, load.summary())
     load.stop.set()
     load.join()
     print(table(rows))
