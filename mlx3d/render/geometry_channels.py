@@ -65,6 +65,14 @@ def depth_planes(camera, means, normals, depths, means2d):
     return a, slope
 
 
+def planes_at_pixels(camera, planes) -> mx.array:
+    """(H,W) ``a + g·q`` of composited plane channels (H,W,3) = (a, g_x, g_y) at each pixel centre q (relative to
+    the image centre, as ``depth_planes``)."""
+    u = mx.arange(camera.width, dtype=mx.float32) + 0.5 - camera.width / 2.0
+    v = mx.arange(camera.height, dtype=mx.float32)[:, None] + 0.5 - camera.height / 2.0
+    return planes[..., 0] + u * planes[..., 1] + v * planes[..., 2]
+
+
 def reference_depth(depths, radii) -> mx.array:
     """Mean depth of the visible Gaussians (no gradient): the default variance reference."""
     visible = (radii > 0).astype(mx.float32)
@@ -98,9 +106,7 @@ def unpack(plan, camera, accum, alpha, reference) -> dict:
     col = 3
     if plan.depth:
         if plan.planar_depth:
-            u = mx.arange(camera.width, dtype=mx.float32) + 0.5 - camera.width / 2.0
-            v = mx.arange(camera.height, dtype=mx.float32)[:, None] + 0.5 - camera.height / 2.0
-            depth = (accum[..., col] + u * accum[..., col + 1] + v * accum[..., col + 2]) * inv_alpha
+            depth = planes_at_pixels(camera, accum[..., col : col + 3]) * inv_alpha
             col += 3
         else:
             depth = accum[..., col] * inv_alpha

@@ -406,9 +406,7 @@ def render_gaussian_median_depth(
     between = in_front_of(hi, features) - in_front_of(lo, features)  # the crossing Gaussians' own share
     weight = between[..., 0]
     if planar:
-        u = mx.arange(w, dtype=mx.float32) + 0.5 - w / 2.0
-        v = mx.arange(h, dtype=mx.float32)[:, None] + 0.5 - h / 2.0
-        own = (between[..., 1] + u * between[..., 2] + v * between[..., 3]) / mx.maximum(weight, 1e-12)
+        own = geometry_channels.planes_at_pixels(camera, between[..., 1:4]) / mx.maximum(weight, 1e-12)
     else:
         own = between[..., 1] / mx.maximum(weight, 1e-12)
     depth = mx.where(weight > 1e-6, own, hi)  # a share too small to divide by: the bracket's far end
