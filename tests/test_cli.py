@@ -10,6 +10,7 @@ import mlx.core as mx
 import numpy as np
 import pytest
 
+from mlx3d.cameras import Camera
 from mlx3d.cli import main
 from mlx3d.splatting import GaussianModel, eval_sh
 from mlx3d.transforms import euler_to_matrix
@@ -144,17 +145,29 @@ def test_mesh_writes_a_coloured_mesh_and_refuses_transparent_models(tmp_path, ca
     m.params["quats"] = mx.array(q.astype(np.float32))
     m.params["scales"] = mx.array(np.log(np.tile([0.04, 0.04, 1e-3], (6000, 1))).astype(np.float32))
     m.save_ply(tmp_path / "ball.ply")
+    # the training cameras fusion renders: a NeRF-synthetic folder of 12 views around the ball
+    from PIL import Image
+
+    (tmp_path / "data" / "train").mkdir(parents=True)
+    frames = []
+    for i, (a, z) in enumerate((a, z) for a in np.linspace(0, 2 * np.pi, 6, endpoint=False) for z in (-1.5, 1.5)):
+        camera = Camera.look_at((3.5 * np.cos(a), 3.5 * np.sin(a), z), up=(0, 0, 1), fov=50, width=96, height=96)
+        Image.new("RGB", (96, 96)).save(tmp_path / "data" / "train" / f"r_{i}.png")
+        frames.append({"file_path": f"./train/r_{i}", "transform_matrix": camera.to_opengl_c2w().tolist()})
+    (tmp_path / "data" / "transforms_train.json").write_text(json.dumps({"camera_angle_x": np.radians(50), "frames": frames}))
     opaque = m.params["opacities"]
     for method, error in (("fusion", "the splats cover no pixel"), ("poisson", "no Gaussian has opacity")):
         out = tmp_path / f"ball_{method}.ply"
-        assert main(["mesh", str(tmp_path / "ball.ply"), "--out", str(out), "--method", method, "--resolution", "48"]) == 0
+        assert main(["mesh", str(tmp_path / "ball.ply"), "--out", str(out), "--method", method, "--resolution", "48",
+                     "--data", str(tmp_path / "data")]) == 0
         assert "faces" in capsys.readouterr().out
         mesh = read_mesh_ply(out)
         assert np.abs(np.linalg.norm(mesh.vertices, axis=1) - 1.0).max() < 2 * 2.4 / 48
         np.testing.assert_allclose(mesh.colors.mean(0), [0.9, 0.2, 0.1], atol=2 / 255)
         m.params["opacities"] = mx.full((6000,), -9.0)
         m.save_ply(tmp_path / "clear.ply")
-        assert main(["mesh", str(tmp_path / "clear.ply"), "--out", str(tmp_path / "clear_mesh.ply"), "--method", method]) == 1
+        assert main(["mesh", str(tmp_path / "clear.ply"), "--out", str(tmp_path / "clear_mesh.ply"), "--method", method,
+                     "--data", str(tmp_path / "data")]) == 1
         assert error in capsys.readouterr().err and not (tmp_path / "clear_mesh.ply").exists()
         m.params["opacities"] = opaque
 

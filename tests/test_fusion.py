@@ -4,6 +4,10 @@ Oracles: depth maps ray-traced analytically from a sphere (radius, volume, colou
 of the mesh against the sphere's), space no camera saw (no triangles there),
 a floater seen by one view against many that see through it, and the
 connected pieces of two separate spheres.
+
+Fusion is numpy; the median depth it renders from splats is tested on the pure
+MLX path and the kernels alike in ``test_surfels.py``, so ``make test-pure``
+skips this module (``runs_no_kernel``).
 """
 
 from __future__ import annotations
@@ -15,6 +19,9 @@ import pytest
 from mlx3d.cameras import Camera
 from mlx3d.meshing import DepthView, MeshingError, fuse_depth_maps, keep_large_components, marching_tetrahedra
 from mlx3d.meshing.fusion import fusion_grid, is_surfel_model, orbit_cameras
+from core_marks import runs_no_kernel
+
+pytestmark = runs_no_kernel
 
 
 def sphere_view(camera, centre=(0.0, 0.0, 0.0), radius=1.0):
