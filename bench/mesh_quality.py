@@ -1,7 +1,8 @@
 """Benchmark mesh extraction quality: train, extract, compare with the ground-truth mesh.
 
     python bench/mesh_quality.py DATA_DIR [--gt MESH.ply] [--methods 2dgs,vanilla] [--steps 3000]
-                                 [--resolution 128] [--max-gaussians 60000] [--out DIR] [--markdown PATH]
+                                 [--resolution 128] [--extract fusion,poisson] [--max-gaussians 60000]
+                                 [--model PLY] [--out DIR] [--markdown PATH]
 
 DATA_DIR is a captured dataset (``make demo`` writes ``demo_out/dataset``;
 its ``mesh.ply`` holds the captured surfaces, the ground truth). For each
@@ -157,6 +158,7 @@ def main() -> None:
     parser.add_argument("--resolution", type=int, default=128)
     parser.add_argument("--extract", default="fusion,poisson", help="extraction methods, comma-separated (default fusion,poisson)")
     parser.add_argument("--max-gaussians", type=int, default=60_000)
+    parser.add_argument("--model", metavar="PLY", help="mesh this trained model instead of training (e.g. demo_out/trained.ply)")
     parser.add_argument("--out", default="bench/out/mesh_quality")
     parser.add_argument("--markdown", metavar="PATH")
     parser.add_argument("--child", metavar="METHOD", help=argparse.SUPPRESS)
@@ -174,11 +176,15 @@ def main() -> None:
     centres = np.array([f.camera.center for f in dataset.frames])
     truth = read_mesh_ply(args.gt or os.path.join(args.data, "mesh.ply"))
     rows, meshes = [], []
-    for method in args.methods.split(","):
-        ply = os.path.join(args.out, f"{method}.ply")
-        cmd = [sys.executable, __file__, args.data, "--child", method, "--steps", str(args.steps), "--max-gaussians", str(args.max_gaussians), "--out", args.out]
-        trained = json.loads(subprocess.run(cmd, stdout=subprocess.PIPE, text=True, check=True).stdout.strip().splitlines()[-1])
+    for method in ["given"] if args.model else args.methods.split(","):
+        if args.model:
+            ply, trained = args.model, {"train_s": float("nan"), "psnr": float("nan")}
+        else:
+            ply = os.path.join(args.out, f"{method}.ply")
+            cmd = [sys.executable, __file__, args.data, "--child", method, "--steps", str(args.steps), "--max-gaussians", str(args.max_gaussians), "--out", args.out]
+            trained = json.loads(subprocess.run(cmd, stdout=subprocess.PIPE, text=True, check=True).stdout.strip().splitlines()[-1])
         model = GaussianModel.load_ply(ply)
+        trained["gaussians"] = len(model)
         for extraction in args.extract.split(","):
             t0 = time.perf_counter()
             if extraction == "fusion":
@@ -194,16 +200,17 @@ def main() -> None:
             print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
     diagonal = rows[0]["diagonal"]
     lines = [
-        f"Mesh extraction on {os.path.basename(os.path.abspath(args.data))} ({platform.machine()}, {os.cpu_count()} cores): {args.steps:,} training steps, "
+        f"Mesh extraction on {os.path.basename(os.path.abspath(args.data))} ({platform.machine()}, {os.cpu_count()} cores): "
+        + (f"the model {args.model}, " if args.model else f"{args.steps:,} training steps, ") +
         f"resolution {args.resolution}, ground-truth bounding-box diagonal {diagonal:.3f}",
         "",
-        "| method | extraction | train (s) | held-out PSNR (dB) | Gaussians | extract (s) | faces | Chamfer | Chamfer / diagonal | accuracy | completeness | normal consistency |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| method | extraction | train (s) | held-out PSNR (dB) | Gaussians | extract (s) | faces | Chamfer | Chamfer / diagonal | accuracy | completeness | F-score 0.5 % | F-score 1 % | normal consistency |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
         lines.append(
             f"| {r['method']} | {r['extraction']} | {r['train_s']:.0f} | {r['psnr']:.2f} | {r['gaussians']:,} | {r['extract_s']:.1f} | {r['faces']:,} | {r['chamfer']:.4f} | "
-            f"{100 * r['chamfer_frac']:.2f}% | {r['accuracy']:.4f} | {r['completeness']:.4f} | {r['normal_consistency']:.3f} |"
+            f"{100 * r['chamfer_frac']:.2f}% | {r['accuracy']:.4f} | {r['completeness']:.4f} | {r['f_0.5']:.3f} | {r['f_1']:.3f} | {r['normal_consistency']:.3f} |"
         )
     emit("\n".join(lines) + "\n", args.markdown)
     test = dataset.test[len(dataset.test) // 2] if dataset.test else 0
