@@ -112,7 +112,7 @@ def test_make_targets_exist(page):
     targets = set(re.findall(r"^([A-Za-z0-9_.-]+)\s*:(?!=)", makefile, re.M))
     targets |= set(re.findall(r"\b(test-[a-z0-9-]+)\b", makefile))
     for line, body in _blocks(page, SHELL):
-        for m in re.finditer(r"(?:^|[;&|]\s*|\$ )make ((?:[a-z][\w-]*\s*)+)", body, re.M):
+        for m in re.finditer(r"(?:^|[;&|][ \t]*|\$ )make ((?:[a-z][\w-]*[ \t]*)+)", body, re.M):
             for target in m.group(1).split():
                 if "=" in target:
                     continue
