@@ -1,7 +1,7 @@
 """Train and evaluate on the realistic captures (cameras from our own SfM): held-out PSNR, worst view, time.
 
     .venv/bin/python bench/real_captures.py [--data bench_data/captures] [--scenes arc,lund,...]
-                                            [--methods vanilla,mcmc] [--steps 3000,7000] [--factor 1]
+                                            [--methods vanilla,mcmc,vanilla+grid] [--steps 3000,7000] [--factor 1]
                                             [--out bench/out/real_captures] [--markdown docs/benchmarks/real_captures.md]
 
 The datasets are the ones ``bench/captures.py`` writes (``DATA/NAME/data``:
@@ -53,6 +53,8 @@ NOTES = ("captures", "views")  # hand-written parts of the page, kept when it is
 
 
 # ------------------------------------------------------------------ one run (child process)
+GRID = "+grid"  # a method name ending in it trains with the bilateral grid (mlx3d train --bilateral-grid)
+
 def _child(args) -> None:
     from mlx3d.datasets import load_dataset
     from mlx3d.training import GaussianTrainer, TrainerConfig, events_at
@@ -64,7 +66,8 @@ def _child(args) -> None:
     background = BACKGROUNDS["black"]
     dataset = load_dataset(args.data_dir, factor=args.factor)
     first = dataset.frames[dataset.train[0]].camera
-    config = TrainerConfig(method=method, steps=milestones[-1], background=background, opaque_background="auto")
+    config = TrainerConfig(method=method.split("+")[0], steps=milestones[-1], background=background, opaque_background="auto",
+                           bilateral_grid=method.endswith(GRID))
     start = initial_state(dataset, config)
     for note in start.notes:
         print(f"[{scene} {method}] {note}", file=sys.stderr, flush=True)
@@ -278,7 +281,8 @@ def main() -> int:
     parser.add_argument("--data", default=os.path.join("bench_data", "captures"), metavar="DIR",
                         help="the captures bench/captures.py wrote (default bench_data/captures)")
     parser.add_argument("--scenes", default=",".join(SCENES), help=f"comma-separated (default {','.join(SCENES)})")
-    parser.add_argument("--methods", default="vanilla,mcmc", help="comma-separated (default vanilla,mcmc)")
+    parser.add_argument("--methods", default="vanilla,mcmc",
+                        help=f"comma-separated (default vanilla,mcmc); METHOD{GRID} trains with a per-photo colour grid (--bilateral-grid)")
     parser.add_argument("--steps", default="3000,7000", help="milestones of one run, comma-separated (default 3000,7000)")
     parser.add_argument("--factor", type=float, default=1.0, help="image downscale factor, as mlx3d train --factor (default 1)")
     parser.add_argument("--out", default=os.path.join("bench", "out", "real_captures"), metavar="DIR",
@@ -302,8 +306,8 @@ def main() -> int:
         if s not in SCENES:
             parser.error(f"unknown scene {s!r}; use {', '.join(SCENES)}")
     for m in methods:
-        if m not in METHODS:
-            parser.error(f"unknown method {m!r}; use {', '.join(METHODS)}")
+        if m.removesuffix(GRID) not in METHODS:
+            parser.error(f"unknown method {m!r}; use {', '.join(METHODS)}, each optionally with {GRID} (a per-photo colour grid)")
     try:
         milestones = _milestones(args.steps)
     except ValueError:
