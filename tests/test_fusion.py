@@ -78,6 +78,24 @@ def test_a_floater_one_view_sees_is_carved_by_the_views_that_see_through_it():
     assert np.abs(np.linalg.norm(mesh.vertices, axis=1) - 1.0).max() < 0.06  # nothing but the sphere
 
 
+def test_a_far_backdrop_stays_out_of_the_volume():
+    """Where the rays miss the sphere they hit a backdrop 40 units away (as training's far shell): the volume
+    stays near the cameras, so the sphere keeps its voxels."""
+    views = []
+    for c in ring_cameras(30, (-60, 60)):
+        near = sphere_view(c)
+        origins, dirs = c.rays()
+        o = np.broadcast_to(origins, dirs.shape)
+        b = np.sum(o * dirs, axis=-1)
+        t = -b + np.sqrt(b * b - (np.sum(o * o, axis=-1) - 1600.0))  # from inside the big sphere: its far side
+        far_z = np.asarray(c.world_to_camera(o + dirs * t[..., None]))[..., 2]
+        views.append(DepthView(c, np.where(np.isfinite(near.depth), near.depth, far_z)))
+    grid = fusion_grid(views, 64)
+    assert grid.voxel < 0.1
+    mesh = fuse_depth_maps(views, resolution=64)
+    assert np.abs(np.linalg.norm(mesh.vertices, axis=1) - 1.0).max() < 2 * grid.voxel
+
+
 def test_small_pieces_are_dropped_by_their_share_of_the_largest():
     cams = ring_cameras(30, (-60, 60), distance=5.0)
     views = []

@@ -40,6 +40,8 @@ __all__ = ["BLOCK", "DEPTHS", "DepthView", "FusionGrid", "fuse_depth_maps", "fus
 
 #: Nodes per side of a block, the unit in which space is stored.
 BLOCK = 8
+#: The space meshed by default reaches this many camera extents from the cameras' mean (see :func:`reach`).
+REACH = 4.0
 #: Default truncation, in voxels (the 2DGS paper's fusion uses 4 to 5).
 TRUNCATION_VOXELS = 4.0
 _NODES = BLOCK**3
@@ -83,17 +85,33 @@ class FusionGrid:
         return tuple(s // BLOCK for s in self.shape)
 
 
+def reach(cameras) -> tuple:
+    """``(centre (3,), radius)`` of the space meshed by default: within :data:`REACH` times the cameras' extent
+    (3DGS's: 1.1 x the largest distance of a camera from their mean) of their mean; radius ``inf`` for cameras at
+    one point. Training puts a scene's backdrop 5 extents out (``TrainerConfig.backdrop_distance``), so the
+    sky and far walls of a capture stay out of the volume and do not stretch its voxels."""
+    centres = np.array([c.center for c in cameras], dtype=np.float64).reshape(-1, 3)
+    extent = 1.1 * float(np.linalg.norm(centres - centres.mean(axis=0), axis=1).max()) if len(centres) else 0.0
+    return (centres.mean(axis=0) if len(centres) else np.zeros(3)), (REACH * extent if extent > 0 else math.inf)
+
+
 def fusion_grid(views, resolution: int = 256, voxel_size: float | None = None, truncation: float | None = None,
                 bounds=None) -> FusionGrid:
     """The lattice for ``views``: over ``bounds`` ((2, 3) min and max corners; default the 0.5 to 99.5
-    percentiles of every seen surface point per axis) plus the truncation, with ``voxel_size`` (default the
-    bounds' longest side / ``resolution``) and ``truncation`` (default :data:`TRUNCATION_VOXELS` voxels)."""
+    percentiles, per axis, of the seen surface points within :func:`reach` of the views' cameras) plus the
+    truncation, with ``voxel_size`` (default the bounds' longest side / ``resolution``) and ``truncation``
+    (default :data:`TRUNCATION_VOXELS` voxels)."""
     if bounds is None:
         points = [_surface_points(v, stride=4) for v in views]
         points = np.concatenate(points) if points else np.zeros((0, 3))
         if len(points) == 0:
             raise MeshingError(f"none of the {len(views)} depth maps sees a surface (every depth is 0, NaN or inf)")
-        bounds = np.percentile(points, [0.5, 99.5], axis=0)
+        centre, radius = reach([v.camera for v in views])
+        near = points[np.linalg.norm(points - centre, axis=1) <= radius]
+        if len(near) == 0:
+            raise MeshingError(f"the depth maps see surfaces only farther than {radius:.4g} from the cameras' centre "
+                               "(4 times their extent); give bounds to mesh them")
+        bounds = np.percentile(near, [0.5, 99.5], axis=0)
     bounds = np.asarray(bounds, dtype=np.float64).reshape(2, 3)
     if not np.isfinite(bounds).all() or (bounds[1] < bounds[0]).any():
         raise MeshingError(f"bounds must be finite (min corner, max corner), got {bounds.tolist()}")
