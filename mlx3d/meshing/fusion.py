@@ -162,18 +162,18 @@ def _in_lens(camera, pc: np.ndarray) -> np.ndarray:
     return front & ((pc[:, 0] / zs) ** 2 + (pc[:, 1] / zs) ** 2 <= limit)
 
 
-def _sample(view: DepthView, points: np.ndarray, image=None):
-    """Depth (or ``image``) at the pixels ``points`` (M, 3) fall on (nearest pixel), their camera z and
-    whether they land in the picture through the lens: ``(values, z, inside)``."""
+def _sample(view: DepthView, points: np.ndarray):
+    """Depth at the pixels ``points`` (M, 3) fall on (nearest pixel), their camera z, whether they land in the
+    picture through the lens, and that pixel's flat index (0 outside), to read other images there:
+    ``(depth, z, inside, pixel)``."""
     camera = view.camera
     pc = np.asarray(camera.world_to_camera(points), dtype=np.float64)
     uv, z = camera.camera_to_pixels(pc)
     uv = np.asarray(uv)
     col, row = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
     inside = _in_lens(camera, pc) & (col >= 0) & (col < camera.width) & (row >= 0) & (row < camera.height)
-    source = view.depth if image is None else image
-    values = source[np.where(inside, row, 0), np.where(inside, col, 0)]
-    return values, np.asarray(z), inside
+    pixel = np.where(inside, row * camera.width + col, 0)
+    return view.depth.reshape(-1)[pixel], np.asarray(z), inside, pixel
 
 
 def _touched_blocks(view: DepthView, grid: FusionGrid) -> np.ndarray:
@@ -213,13 +213,13 @@ def _integrate(view: DepthView, grid: FusionGrid, blocks: np.ndarray, tsdf: np.n
     """Adds ``view``'s projective distances to the nodes of ``blocks`` (running mean, weight 1 per view)."""
     camera = view.camera
     centres = grid.origin + grid.voxel * (np.stack(np.unravel_index(blocks, grid.blocks), axis=1) * BLOCK + (BLOCK - 1) / 2)
-    _, z, _ = _sample(view, centres)
+    _, z, _, _ = _sample(view, centres)
     radius = grid.voxel * BLOCK * math.sqrt(3) / 2
     near = np.flatnonzero(z > -radius)  # a cheap cull of blocks behind the camera; pixels decide the rest
     for a in range(0, len(near), _CHUNK_BLOCKS):
         rows = near[a : a + _CHUNK_BLOCKS]
         points = grid.origin + grid.voxel * _block_nodes(blocks[rows], grid)
-        depth, zn, inside = _sample(view, points)
+        depth, zn, inside, _ = _sample(view, points)
         depth = depth.astype(np.float64)
         known = inside & ~np.isnan(depth) & (depth > 0)
         sdf = np.where(np.isinf(depth), grid.truncation, depth - zn)
@@ -252,10 +252,9 @@ def vertex_colors(vertices: np.ndarray, views, truncation: float) -> np.ndarray:
     for view in views:
         if view.color is None:
             continue
-        depth, z, inside = _sample(view, vertices)
+        depth, z, inside, pixel = _sample(view, vertices)
         seen = inside & np.isfinite(depth) & (depth > 0) & (np.abs(depth - z) <= truncation / 2)
-        color, _, _ = _sample(view, vertices[seen], image=view.color)
-        total[seen] += color
+        total[seen] += view.color.reshape(-1, 3)[pixel[seen]]
         count[seen] += 1
     return np.where(count[:, None] > 0, total / np.maximum(count, 1)[:, None], 0.5).astype(np.float32)
 
