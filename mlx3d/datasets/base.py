@@ -71,6 +71,12 @@ class Frame:
     mask_path: Path | None = None
 
 
+def cameras_extent(centres) -> float:
+    """3DGS's ``cameras_extent`` of camera centres (C, 3): 1.1 x the largest distance of one from their mean."""
+    centres = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
+    return float(np.linalg.norm(centres - centres.mean(axis=0), axis=1).max() * 1.1)
+
+
 def holdout_split(n: int, test_every: int | None = 8) -> dict[str, list[int]]:
     """Every ``test_every``-th frame held out for testing: indices 0, k, 2k, ... go to ``test``.
 
@@ -514,9 +520,7 @@ class Dataset:
         indices: the cameras to use; default the training split (as 3DGS), or
         every frame when the dataset has no training frames.
         """
-        centers = self._camera_centres(indices)
-        d = np.linalg.norm(centers - centers.mean(axis=0), axis=1)
-        return float(d.max() * 1.1)
+        return cameras_extent(self._camera_centres(indices))
 
     def scene_centre(self, indices: Sequence[int] | None = None) -> np.ndarray:
         """(3,) the mean of the camera centres (the same cameras as ``scene_extent``)."""

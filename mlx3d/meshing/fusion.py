@@ -90,8 +90,10 @@ def reach(cameras) -> tuple:
     (3DGS's: 1.1 x the largest distance of a camera from their mean) of their mean; radius ``inf`` for cameras at
     one point. Training puts a scene's backdrop 5 extents out (``TrainerConfig.backdrop_distance``), so the
     sky and far walls of a capture stay out of the volume and do not stretch its voxels."""
+    from ..datasets.base import cameras_extent
+
     centres = np.array([c.center for c in cameras], dtype=np.float64).reshape(-1, 3)
-    extent = 1.1 * float(np.linalg.norm(centres - centres.mean(axis=0), axis=1).max()) if len(centres) else 0.0
+    extent = cameras_extent(centres) if len(centres) else 0.0
     return (centres.mean(axis=0) if len(centres) else np.zeros(3)), (REACH * extent if extent > 0 else math.inf)
 
 
@@ -211,7 +213,6 @@ def _block_nodes(blocks: np.ndarray, grid: FusionGrid) -> np.ndarray:
 
 def _integrate(view: DepthView, grid: FusionGrid, blocks: np.ndarray, tsdf: np.ndarray, weight: np.ndarray) -> None:
     """Adds ``view``'s projective distances to the nodes of ``blocks`` (running mean, weight 1 per view)."""
-    camera = view.camera
     centres = grid.origin + grid.voxel * (np.stack(np.unravel_index(blocks, grid.blocks), axis=1) * BLOCK + (BLOCK - 1) / 2)
     _, z, _, _ = _sample(view, centres)
     radius = grid.voxel * BLOCK * math.sqrt(3) / 2
