@@ -53,12 +53,13 @@ NOTES = ("captures", "views")  # hand-written parts of the page, kept when it is
 
 
 # ------------------------------------------------------------------ one run (child process)
-GRID = "+grid"  # a method name ending in it trains with the bilateral grid (mlx3d train --bilateral-grid)
+GRID, NO_GRID = "+grid", "-grid"  # a method name ending in one trains with the bilateral grid on / off; else 'auto', the default
 
 def _child(args) -> None:
     from mlx3d.datasets import load_dataset
     from mlx3d.training import GaussianTrainer, TrainerConfig, events_at
     from mlx3d.training.evaluate import BACKGROUNDS, render_view, save_side_by_side
+    from mlx3d.training.exposure import exposure_spread
     from mlx3d.training.initial import initial_state
 
     scene, method = args.scene, args.child
@@ -66,15 +67,19 @@ def _child(args) -> None:
     background = BACKGROUNDS["black"]
     dataset = load_dataset(args.data_dir, factor=args.factor)
     first = dataset.frames[dataset.train[0]].camera
-    config = TrainerConfig(method=method.split("+")[0], steps=milestones[-1], background=background, opaque_background="auto",
-                           bilateral_grid=method.endswith(GRID))
+    grid = True if method.endswith(GRID) else False if method.endswith(NO_GRID) else "auto"
+    config = TrainerConfig(method=method.removesuffix(GRID).removesuffix(NO_GRID), steps=milestones[-1], background=background,
+                           opaque_background="auto", bilateral_grid=grid)
     start = initial_state(dataset, config)
+    spread = exposure_spread(dataset)
     for note in start.notes:
         print(f"[{scene} {method}] {note}", file=sys.stderr, flush=True)
     trainer = GaussianTrainer(start.model, start.config, scene_extent=dataset.scene_extent())
     base = {"scene": scene, "method": method, "schedule": milestones[-1], "factor": args.factor,
             "size": f"{first.width}x{first.height}", "train_views": len(dataset.train), "test_views": len(dataset.test),
-            "start_points": 0 if dataset.points is None else int(len(dataset.points)), "start_gaussians": len(start.model)}
+            "start_points": 0 if dataset.points is None else int(len(dataset.points)), "start_gaussians": len(start.model),
+            "grid": ("on" if start.config.bilateral_grid else "off") + (" (auto)" if grid == "auto" else ""),
+            "exposure_spread": spread}
     for milestone, trained in train_to_milestones(trainer, dataset, milestones, f"{scene} {method}"):
         if milestone < milestones[-1] and "reset_opacity" in events_at(trainer.config, milestone):
             print(f"[{scene} {method}] no row at step {milestone:,}: the opacity reset has just made every Gaussian "
@@ -161,20 +166,25 @@ def _results_tables(rows) -> str:
         group = sorted([r for r in rows if (r["method"], r["steps"]) == (method, steps)],
                        key=lambda r: (SCENES.index(r["scene"]) if r["scene"] in SCENES else 99, r["factor"], r["schedule"]))
         out += [f"### {method}, {steps:,} steps", "",
-                "| scene | factor | image | train/test views | schedule | PSNR mean (dB) | PSNR worst (view) | SSIM mean | SSIM worst | "
+                "| scene | factor | image | train/test views | schedule | colour grid (exposure spread) | PSNR mean (dB) | PSNR worst (view) | SSIM mean | SSIM worst | "
                 "CC-PSNR mean | CC-PSNR worst | Gaussians | train time (s) | steps/s | peak RSS (MB) | load (median) | measured |",
-                "|---|---:|---|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+                "|---|---:|---|---:|---:|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
         for r in group:
             if "error" in r:
-                out.append(f"| {r['scene']} | {r['factor']:g} | | | | failed: {r['error']} | | | | | | | | | | | {_measured(r)} |")
+                out.append(f"| {r['scene']} | {r['factor']:g} | | | | | failed: {r['error']} | | | | | | | | | | | {_measured(r)} |")
                 continue
             out.append(
                 f"| {r['scene']} | {r['factor']:g} | {r['size']} | {r['train_views']}/{r['test_views']} | {r['schedule']:,} | "
-                f"{r['psnr']:.2f} | {r['psnr_worst']:.2f} ({r['worst_view']}) | {r['ssim']:.4f} | {r['ssim_worst']:.4f} | "
+                f"{_grid(r)} | {r['psnr']:.2f} | {r['psnr_worst']:.2f} ({r['worst_view']}) | {r['ssim']:.4f} | {r['ssim_worst']:.4f} | "
                 f"{r['cc_psnr']:.2f} | {r['cc_psnr_worst']:.2f} | {r['gaussians']:,} | {r['seconds']:.0f} | {r['steps_per_s']:.2f} | "
                 f"{r['peak_rss_mb']:.0f} | {r.get('load_median', float('nan')):.1f} | {_measured(r)} |")
         out.append("")
     return "\n".join(out)
+
+
+def _grid(row) -> str:
+    spread = row.get("exposure_spread")
+    return row.get("grid", "off") + ("" if spread is None else f" ({spread:.3f})")
 
 
 def _pictures(rows) -> str:
@@ -248,7 +258,10 @@ after a similarity alignment of the camera centres, the largest rotation error a
 
 `bench/real_captures.py` trains each dataset as `mlx3d train DATA --eval` does: every 8th photo in name order held
 out, the solved sparse points as the start, black background, `auto` behind opaque photos, one run at a time in
-its own process. CC-PSNR is the PSNR after the affine colour map that best fits each render to its photo. A row
+its own process, with the per-photo colour grid where `mlx3d train` turns it on by default (the exposure spread the
+solve measures, `mlx3d.training.exposure`, above 0.03; rows named `METHOD+grid` / `METHOD-grid` force it on / off,
+and rows measured before that default existed trained without it). CC-PSNR is the PSNR after the affine colour map
+that best fits each render to its photo. A row
 whose schedule is longer than its steps is a checkpoint of a longer run (the 3,000-step evaluation of a
 7,000-step run). Each row names the commit it was measured on (`+ uncommitted mlx3d/ changes` when the trainer's
 files differed from it).
@@ -282,7 +295,8 @@ def main() -> int:
                         help="the captures bench/captures.py wrote (default bench_data/captures)")
     parser.add_argument("--scenes", default=",".join(SCENES), help=f"comma-separated (default {','.join(SCENES)})")
     parser.add_argument("--methods", default="vanilla,mcmc",
-                        help=f"comma-separated (default vanilla,mcmc); METHOD{GRID} trains with a per-photo colour grid (--bilateral-grid)")
+                        help=f"comma-separated (default vanilla,mcmc), as mlx3d train's default (a per-photo colour grid when "
+                             f"the exposure varies); METHOD{GRID} / METHOD{NO_GRID}: with the grid on / off")
     parser.add_argument("--steps", default="3000,7000", help="milestones of one run, comma-separated (default 3000,7000)")
     parser.add_argument("--factor", type=float, default=1.0, help="image downscale factor, as mlx3d train --factor (default 1)")
     parser.add_argument("--out", default=os.path.join("bench", "out", "real_captures"), metavar="DIR",
@@ -306,8 +320,8 @@ def main() -> int:
         if s not in SCENES:
             parser.error(f"unknown scene {s!r}; use {', '.join(SCENES)}")
     for m in methods:
-        if m.removesuffix(GRID) not in METHODS:
-            parser.error(f"unknown method {m!r}; use {', '.join(METHODS)}, each optionally with {GRID} (a per-photo colour grid)")
+        if m.removesuffix(GRID).removesuffix(NO_GRID) not in METHODS:
+            parser.error(f"unknown method {m!r}; use {', '.join(METHODS)}, each optionally with {GRID} or {NO_GRID} (the colour grid on, off)")
     try:
         milestones = _milestones(args.steps)
     except ValueError:

@@ -328,7 +328,8 @@ def _train(args, ranks) -> None:
     out_dir = os.path.dirname(os.path.abspath(args.out))
     config = TrainerConfig(
         method=args.method, steps=args.steps, max_gaussians=args.max_gaussians, background=args.background,
-        seed=args.seed, checkpoint_every=args.checkpoint_every, checkpoint_dir=out_dir, bilateral_grid=args.bilateral_grid,
+        seed=args.seed, checkpoint_every=args.checkpoint_every, checkpoint_dir=out_dir,
+        bilateral_grid={"on": True, "off": False}.get(args.bilateral_grid, "auto"),
         init_random_points=args.random_points, init_background_points=args.background_points,
         opaque_background=None if args.opaque_background == "same" else args.opaque_background, batch_size=args.batch_size,
     )
@@ -615,7 +616,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--checkpoint-every", type=int, default=0, metavar="N", help="write checkpoint.npz next to OUT every N steps")
     p.add_argument("--resume", metavar="CHECKPOINT.npz", help="continue from a checkpoint")
     p.add_argument("--eval", action="store_true", help="evaluate the held-out views at the end")
-    p.add_argument("--bilateral-grid", action="store_true", help="per-image colour grid for exposure/white-balance differences")
+    p.add_argument("--bilateral-grid", nargs="?", choices=("auto", "on", "off"), const="on", default="auto",
+                   help="a per-photo colour grid that absorbs exposure and white-balance differences: 'auto' (default) "
+                        "turns it on when the solve shows the photos' exposure varies; --bilateral-grid alone: on")
     p.add_argument("--random-points", type=int, default=100_000, metavar="N",
                    help="a dataset without points starts from N random points in a cube around what the cameras look at (default 100000)")
     p.add_argument("--background-points", type=int, default=None, metavar="N",

@@ -545,3 +545,18 @@ def test_state_roundtrip(tmp_path, rng):
     bg.reset(0)
     np.testing.assert_array_equal(np.array(bg.params[0]), np.array(identity_grid((3, 4, 5))))
     assert np.abs(np.array(bg.params[1]) - np.array(identity_grid((3, 4, 5)))).max() > 0
+
+
+def test_auto_grid_is_decided_from_the_dataset_and_off_without_one():
+    """'auto' is the default; a trainer made without initial_state (which measures the photos'
+    exposure, tests/test_sfm.py) trains without a grid; anything but True, False or 'auto' is refused."""
+    from mlx3d.splatting import GaussianModel
+    from mlx3d.training import GaussianTrainer, TrainerConfig
+
+    assert TrainerConfig().bilateral_grid == "auto"
+    model = GaussianModel.from_points(np.random.default_rng(0).normal(size=(20, 3)), sh_degree=0)
+    trainer = GaussianTrainer(model, TrainerConfig(), num_images=4)
+    assert trainer.config.bilateral_grid is False and trainer.bilateral is None
+    assert GaussianTrainer(model, TrainerConfig(bilateral_grid=True), num_images=4).bilateral.num_images == 4
+    with pytest.raises(ValueError, match="bilateral_grid must be True, False or 'auto'"):
+        TrainerConfig(bilateral_grid="on")

@@ -335,6 +335,27 @@ def test_colmap_points_and_colours(tmp_path, binary):
     np.testing.assert_array_equal(ds.point_colors, scene["colors"])
 
 
+@pytest.mark.parametrize("binary", [True, False], ids=["bin", "txt"])
+def test_colmap_tracks_say_where_each_photo_sees_its_points(tmp_path, binary):
+    """Each image's 2D points that name a 3D point become the dataset's observations, in the
+    frame camera's pixels (scaled with the factor); unobserved keypoints (-1) and ids the model
+    lacks are dropped."""
+    scene = colmap_scene()
+    for k, im in enumerate(scene["images"]):
+        im["pts2d"] = [(1.5 + k, 2.25, 1000 + k), (3.0, 4.0, -1), (7.75, 0.5 + k, 1000 + 2 * k), (2.0, 2.0, 999)]
+    make_colmap(tmp_path, binary, scene)
+    for factor in (1, 2):
+        ds = load_colmap(tmp_path, factor=factor)
+        assert len(ds.observations) == len(ds.frames)
+        for frame, (xy, index) in zip(ds.frames, ds.observations):
+            k = int(frame.name[4:7])
+            np.testing.assert_array_equal(index, [k, 2 * k])
+            np.testing.assert_allclose(xy, np.array([[1.5 + k, 2.25], [7.75, 0.5 + k]]) / factor, rtol=1e-6)
+    make_colmap(tmp_path / "none", binary, colmap_scene(), images=True)
+    (tmp_path / "none" / "sparse" / "0" / f"points3D.{'bin' if binary else 'txt'}").unlink()
+    assert load_colmap(tmp_path / "none").observations is None
+
+
 def test_colmap_without_points3d_has_no_points(tmp_path):
     make_colmap(tmp_path)
     (tmp_path / "sparse" / "0" / "points3D.bin").unlink()

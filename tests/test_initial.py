@@ -186,7 +186,7 @@ def test_mlx3d_train_prints_its_defaults_and_trains_a_scene_without_points(tmp_p
     assert "training background: black (background)" in capsys.readouterr().out  # 2dgs seeds none: nothing to cover the frame with
     assert main(["train", str(folder), "--out", str(out), "--steps", "1", "--random-points", "300", "--opaque-background", "same", "--background", "white"]) == 0
     assert "training background: white (background)" in capsys.readouterr().out
-    assert "bilateral grid" not in printed
+    assert "bilateral grid: off (the exposure spread is not measurable without the sparse model's tracks" in printed
     for method, lr in (("mcmc", "0.001"), ("vanilla", "0.002")):
         assert main(["train", str(folder), "--out", str(out), "--method", method, "--steps", "1", "--random-points", "300", "--bilateral-grid"]) == 0
         assert f"bilateral grid: 16x16x8 per training image, learning rate {lr}" in capsys.readouterr().out

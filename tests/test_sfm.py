@@ -5,11 +5,13 @@ from __future__ import annotations
 import builtins
 import json
 import math
+import shutil
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from PIL import Image
 
 from core_marks import runs_no_kernel
 from mlx3d.cameras import Camera
@@ -17,6 +19,9 @@ from mlx3d.datasets import load_dataset
 from mlx3d.sfm import PosesError, choose_matching, extract_frames, solve_capture, solve_poses, upright
 from mlx3d.sfm.solve import EXHAUSTIVE_MAX, _copy_photos
 from mlx3d.sfm.video import sharpness
+from mlx3d.training import TrainerConfig
+from mlx3d.training.exposure import EXPOSURE_SPREAD, exposure_spread, photo_gains
+from mlx3d.training.initial import initial_state
 from photo_capture import photo_orbit, similarity_errors
 
 pycolmap = pytest.importorskip("pycolmap", reason="pycolmap (the poses extra) is not installed")
@@ -53,6 +58,34 @@ def test_solve_places_every_photo_of_an_orbit_where_it_was_taken(orbit):
     assert result.focal == pytest.approx(128 / math.tan(math.radians(25)), rel=0.02)
     assert json.loads((root / "data" / "poses.json").read_text())["registered"] == names
     assert sorted(p.name for p in (root / "data" / "images").iterdir()) == names
+
+
+def test_exposure_spread_reads_each_photos_gain_from_the_solve(orbit, tmp_path):
+    """Photos of one exposure measure below the threshold, so 'auto' leaves the colour grid off;
+    re-exposing some of the solved photos (gain and white balance) is read back from the tracks,
+    at any loading factor, and turns the grid on."""
+    data = tmp_path / "data"
+    shutil.copytree(orbit[0] / "data", data)
+    plain = load_dataset(data)
+    assert exposure_spread(plain) < EXPOSURE_SPREAD / 3
+    assert initial_state(plain, TrainerConfig(), sh_degree=0).config.bilateral_grid is False
+    gains = {1: (0.6, 0.6, 0.6), 5: (1.25, 1.1, 0.9), 10: (0.8, 0.9, 1.0), 19: (0.7, 0.75, 0.8)}
+    for i, gain in gains.items():
+        path = data / "images" / plain.frames[i].name
+        rgb = np.asarray(Image.open(path).convert("RGB"), np.float64)
+        Image.fromarray(np.clip(np.round(rgb * gain), 0, 255).astype(np.uint8)).save(path)
+    for factor in (1, 2):
+        dataset = load_dataset(data, factor=factor)
+        measured = photo_gains(dataset)
+        assert sorted(measured) == dataset.train  # every training photo sees enough points
+        base = np.median([g for i, g in measured.items() if i not in gains], axis=0)
+        for i, gain in gains.items():
+            np.testing.assert_allclose(measured[i] - base, np.log(gain), atol=0.03, err_msg=f"photo {i}")
+        assert exposure_spread(dataset) > EXPOSURE_SPREAD
+    start = initial_state(dataset, TrainerConfig(), sh_degree=0)
+    assert start.config.bilateral_grid is True
+    assert any(note.startswith("bilateral grid: 16x16x8") and "exposure spread" in note for note in start.notes)
+    assert initial_state(dataset, TrainerConfig(bilateral_grid=False), sh_degree=0).config.bilateral_grid is False
 
 
 def test_progress_goes_forward_through_each_stage_to_its_end(orbit):

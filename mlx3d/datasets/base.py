@@ -418,6 +418,10 @@ class Dataset:
         ``test``, the 3DGS / mip-NeRF 360 convention) and trains on the rest.
     points, point_colors: initial points (M, 3) float32 and their colours
         (M, 3) uint8, when the dataset has them (else None).
+    observations: where each frame's photo sees the points, when the
+        dataset knows (a structure-from-motion model's tracks), else None:
+        per frame ``(xy (K, 2) float32`` pixels of its camera, ``index (K,)``
+        into ``points)``.
     cache_images, cache_bytes: bounds of the LRU cache of decoded images
         (entry count, total bytes of the cached float32 planes); either may
         be None (unbounded) and ``cache_images=0`` disables caching. The
@@ -431,7 +435,7 @@ class Dataset:
     """
 
     def __init__(self, frames: Sequence[Frame], *, splits: dict[str, Sequence[int]] | None = None,
-                 test_every: int | None = 8, points=None, point_colors=None, root=None, kind: str = "custom",
+                 test_every: int | None = 8, points=None, point_colors=None, observations=None, root=None, kind: str = "custom",
                  factor: float = 1.0, cache_images: int | None = None,
                  cache_bytes: int | None = DEFAULT_CACHE_BYTES, resample: str = "lanczos", seed=None):
         self.frames: list[Frame] = list(frames)
@@ -457,8 +461,15 @@ class Dataset:
             if points is None or point_colors.shape != points.shape:
                 raise ValueError(f"point_colors must have the shape of points, got {point_colors.shape}")
             point_colors = point_colors.astype(np.uint8)
+        if observations is not None:
+            if points is None or len(observations) != n:
+                raise ValueError(f"observations need points and one entry per frame ({n}), got {len(observations)}")
+            for i, (xy, index) in enumerate(observations):
+                if np.shape(xy) != (len(index), 2) or len(index) and not 0 <= np.min(index) <= np.max(index) < len(points):
+                    raise ValueError(f"observations[{i}] must be (xy (K, 2), index (K,) into the {len(points)} points)")
         self.points = points
         self.point_colors = point_colors
+        self.observations = observations
         if resample not in _RESAMPLE:
             raise ValueError(f"resample must be one of {_RESAMPLE}, got {resample!r}")
         self.resample = resample

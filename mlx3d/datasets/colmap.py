@@ -40,7 +40,7 @@ is a DatasetError naming it.
 from __future__ import annotations
 
 import struct
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import NamedTuple
 
@@ -91,22 +91,37 @@ class ColmapCamera:
 
 @dataclass(frozen=True)
 class ColmapImage:
-    """One record of ``images.bin``/``images.txt`` (2D points are skipped)."""
+    """One record of ``images.bin``/``images.txt``.
+
+    xys, point3d_ids: the 2D points that observe a 3D point, ``(K, 2)``
+    float64 pixels (COLMAP's convention, see above) and ``(K,)`` int64
+    ``point3D_id`` (keypoints without a 3D point are dropped); empty when
+    the record has none."""
 
     id: int
     qvec: tuple  # w, x, y, z
     tvec: tuple
     camera_id: int
     name: str
+    xys: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)), compare=False, repr=False)
+    point3d_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64), compare=False, repr=False)
 
 
 class ColmapModel(NamedTuple):
-    """A sparse model: cameras and images by id; points (M, 3) float64 and colours (M, 3) uint8 or None."""
+    """A sparse model: cameras and images by id; points (M, 3) float64, colours (M, 3) uint8 and
+    their ``point3D_id`` (M,) int64, or None."""
 
     cameras: dict
     images: dict
     points: np.ndarray | None
     colors: np.ndarray | None
+    point_ids: np.ndarray | None = None
+
+
+def _observed(xys: np.ndarray, ids: np.ndarray) -> dict:
+    """The 2D points of an image record that observe a 3D point (id -1: none)."""
+    keep = ids != -1
+    return {"xys": np.ascontiguousarray(xys[keep], dtype=np.float64), "point3d_ids": ids[keep].astype(np.int64)}
 
 
 # -- binary
@@ -174,7 +189,7 @@ def read_cameras_binary(path) -> dict[int, ColmapCamera]:
 
 
 def read_images_binary(path) -> dict[int, ColmapImage]:
-    """``images.bin`` as ``{image_id: ColmapImage}`` (2D points skipped)."""
+    """``images.bin`` as ``{image_id: ColmapImage}``."""
     r = _Bin(Path(path))
     n = r.count("images")
     images = {}
@@ -190,18 +205,23 @@ def read_images_binary(path) -> dict[int, ColmapImage]:
             raise DatasetError(f"{r.path}: {what}: the image name is not UTF-8") from None
         r.pos = end + 1
         (npts,) = r.take("Q", f"the 2D point count of {what} ({name})")
+        start = r.pos
         r.skip(24 * npts, f"the {npts} 2D points of {what} ({name})")
-        images[vals[0]] = ColmapImage(vals[0], tuple(vals[1:5]), tuple(vals[5:8]), vals[8], name)
+        rec = np.frombuffer(r.buf, dtype=_POINT2D_DTYPE, count=npts, offset=start)
+        images[vals[0]] = ColmapImage(vals[0], tuple(vals[1:5]), tuple(vals[5:8]), vals[8], name,
+                                      **_observed(rec["xy"], rec["id"]))
     r.done(n, "images")
     return images
 
 
+_POINT2D_DTYPE = np.dtype([("xy", "<f8", (2,)), ("id", "<i8")])
 _POINT_DTYPE = np.dtype([("id", "<u8"), ("xyz", "<f8", (3,)), ("rgb", "u1", (3,)), ("error", "<f8")])
 _POINT_HEAD = _POINT_DTYPE.itemsize  # 43 bytes before the track length
 
 
-def read_points3d_binary(path) -> tuple[np.ndarray, np.ndarray]:
-    """``points3D.bin`` as ``(xyz (M, 3) float64, rgb (M, 3) uint8)`` in file order (tracks skipped)."""
+def read_points3d_binary(path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``points3D.bin`` as ``(xyz (M, 3) float64, rgb (M, 3) uint8, point3D_id (M,) int64)`` in file
+    order (tracks skipped: the images' 2D points hold the same observations)."""
     r = _Bin(Path(path))
     n = r.count("points")
     buf, size = r.buf, len(r.buf)
@@ -227,13 +247,15 @@ def read_points3d_binary(path) -> tuple[np.ndarray, np.ndarray]:
     raw = np.frombuffer(buf, dtype=np.uint8)
     xyz = np.empty((n, 3), dtype=np.float64)
     rgb = np.empty((n, 3), dtype=np.uint8)
+    ids = np.empty(n, dtype=np.int64)
     cols = np.arange(_POINT_HEAD)
     chunk = 1 << 16
     for s in range(0, n, chunk):
         rec = raw[offsets[s:s + chunk, None] + cols].view(_POINT_DTYPE)[:, 0]
         xyz[s:s + chunk] = rec["xyz"]
         rgb[s:s + chunk] = rec["rgb"]
-    return xyz, rgb
+        ids[s:s + chunk] = rec["id"]
+    return xyz, rgb, ids
 
 
 # -- text
@@ -279,7 +301,7 @@ def read_cameras_text(path) -> dict[int, ColmapCamera]:
 
 
 def read_images_text(path) -> dict[int, ColmapImage]:
-    """``images.txt`` as ``{image_id: ColmapImage}`` (the 2D point lines are skipped)."""
+    """``images.txt`` as ``{image_id: ColmapImage}``."""
     path = Path(path)
     lines = _text_lines(path)
     images = {}
@@ -300,6 +322,7 @@ def read_images_text(path) -> dict[int, ColmapImage]:
             raise DatasetError(f"{path}:{no}: malformed image line: {exc}") from None
         name = tok[9].strip()
         # The next line holds the image's 2D points (X Y POINT3D_ID triples); it may be empty.
+        observed = {}
         if no < len(lines):
             pts = lines[no].split()
             if len(pts) % 3:
@@ -307,15 +330,20 @@ def read_images_text(path) -> dict[int, ColmapImage]:
                     f"{path}:{no + 1}: expected the 2D points of image {img_id} ({name}) as X Y POINT3D_ID "
                     f"triples, got {len(pts)} values"
                 )
+            try:
+                triples = np.array(pts, dtype=np.float64).reshape(-1, 3)
+            except ValueError as exc:
+                raise DatasetError(f"{path}:{no + 1}: malformed 2D points of image {img_id} ({name}): {exc}") from None
+            observed = _observed(triples[:, :2], triples[:, 2].astype(np.int64))
             no += 1
-        images[img_id] = ColmapImage(img_id, vals[:4], vals[4:], cam_id, name)
+        images[img_id] = ColmapImage(img_id, vals[:4], vals[4:], cam_id, name, **observed)
     return images
 
 
-def read_points3d_text(path) -> tuple[np.ndarray, np.ndarray]:
-    """``points3D.txt`` as ``(xyz (M, 3) float64, rgb (M, 3) uint8)`` in file order."""
+def read_points3d_text(path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``points3D.txt`` as ``(xyz (M, 3) float64, rgb (M, 3) uint8, point3D_id (M,) int64)`` in file order."""
     path = Path(path)
-    xyz, rgb = [], []
+    xyz, rgb, ids = [], [], []
     for no, line in enumerate(_text_lines(path), 1):
         if not _data_line(line):
             continue
@@ -323,6 +351,7 @@ def read_points3d_text(path) -> tuple[np.ndarray, np.ndarray]:
         try:
             if len(tok) < 8:
                 raise ValueError("expected POINT3D_ID X Y Z R G B ERROR TRACK[]")
+            i = int(tok[0])
             p = (float(tok[1]), float(tok[2]), float(tok[3]))
             c = (int(tok[4]), int(tok[5]), int(tok[6]))
             if not all(0 <= v <= 255 for v in c):
@@ -331,7 +360,9 @@ def read_points3d_text(path) -> tuple[np.ndarray, np.ndarray]:
             raise DatasetError(f"{path}:{no}: malformed point line: {exc}") from None
         xyz.append(p)
         rgb.append(c)
-    return np.array(xyz, dtype=np.float64).reshape(-1, 3), np.array(rgb, dtype=np.uint8).reshape(-1, 3)
+        ids.append(i)
+    return (np.array(xyz, dtype=np.float64).reshape(-1, 3), np.array(rgb, dtype=np.uint8).reshape(-1, 3),
+            np.array(ids, dtype=np.int64))
 
 
 def _model_file(sparse: Path, stem: str) -> Path | None:
@@ -362,10 +393,10 @@ def read_colmap_model(sparse_dir) -> ColmapModel:
     cameras = read_cameras_binary(cp) if cp.suffix == ".bin" else read_cameras_text(cp)
     images = read_images_binary(ip) if ip.suffix == ".bin" else read_images_text(ip)
     pp = _model_file(sparse, "points3D")
-    points = colors = None
+    points = colors = ids = None
     if pp is not None:
-        points, colors = read_points3d_binary(pp) if pp.suffix == ".bin" else read_points3d_text(pp)
-    return ColmapModel(cameras, images, points, colors)
+        points, colors, ids = read_points3d_binary(pp) if pp.suffix == ".bin" else read_points3d_text(pp)
+    return ColmapModel(cameras, images, points, colors, ids)
 
 
 # -- conversion
@@ -527,12 +558,30 @@ def load_colmap(path, factor=1, *, sparse_dir=None, images_dir: str = "images", 
         mask = None if masks is None else _mask_for(masks, img.name)
         frames.append(Frame(cam, image_path, img.name, mask))
 
-    points = colors = None
+    points = colors = observations = None
     if model.points is not None:
         points = model.points.astype(np.float32)
         colors = model.colors
-    return Dataset(frames, test_every=test_every, points=points, point_colors=colors, root=root,
-                   kind="colmap", factor=f, **dataset_kw)
+        observations = _observations(model, [img for img, _ in posed_images], frames)
+    return Dataset(frames, test_every=test_every, points=points, point_colors=colors, observations=observations,
+                   root=root, kind="colmap", factor=f, **dataset_kw)
+
+
+def _observations(model: ColmapModel, images: list, frames: list) -> list:
+    """Per frame, the sparse points its photo observes: ``(xy (K, 2) float32`` pixels of the frame's
+    camera, ``index (K,) int64`` into ``model.points)``. 2D points naming a 3D point the model
+    lacks are dropped."""
+    order = np.argsort(model.point_ids, kind="stable")
+    sorted_ids = model.point_ids[order]
+    out = []
+    for img, frame in zip(images, frames):
+        col = model.cameras[img.camera_id]
+        at = np.searchsorted(sorted_ids, img.point3d_ids)
+        at = np.minimum(at, max(len(sorted_ids) - 1, 0))
+        known = (sorted_ids[at] == img.point3d_ids) if len(sorted_ids) else np.zeros(len(at), bool)
+        scale = np.array([frame.camera.width / col.width, frame.camera.height / col.height])
+        out.append(((img.xys[known] * scale).astype(np.float32), order[at[known]].astype(np.int64)))
+    return out
 
 
 __all__ = [

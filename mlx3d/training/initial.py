@@ -348,9 +348,18 @@ def initial_state(dataset, config, sh_degree: int = 3, progress=None) -> Initial
             f"MCMC growth: +{config.mcmc_growth:.0%} every {config.densify_every} steps from step {config.densify_from} "
             f"to {config.densify_until}, relocating Gaussians below opacity {config.mcmc_min_opacity:g}"
         )
+    if config.bilateral_grid == "auto":
+        from .exposure import exposure_varies
+
+        varies, why = exposure_varies(dataset)
+        config = replace(config, bilateral_grid=varies)
+        if not varies:
+            notes.append(f"bilateral grid: off ({why}; bilateral_grid)")
+    else:
+        why = "bilateral_grid"
     if config.bilateral_grid:
         notes.append(f"bilateral grid: {'x'.join(map(str, config.bilateral_grid_shape))} per training image, "
-                     f"learning rate {config.bilateral_grid_lr:g}")
+                     f"learning rate {config.bilateral_grid_lr:g} ({why})")
     spec = training_background(config, opaque)
     if spec is config.background:
         notes.append(f"training background: {_describe(spec)} (background)")

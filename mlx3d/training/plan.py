@@ -92,7 +92,7 @@ def step_plan(config, camera, sh_degree: int, step: int = 0, backend: str = "aut
         losses.append("depth_variance")
     if normals:
         losses.append("normal_consistency")
-    if config.bilateral_grid and config.lambda_bilateral_tv > 0:
+    if config.bilateral_grid is True and config.lambda_bilateral_tv > 0:
         losses.append("bilateral_tv")
     if config.method == "mcmc":
         if config.mcmc_opacity_reg > 0:
@@ -106,5 +106,5 @@ def step_plan(config, camera, sh_degree: int, step: int = 0, backend: str = "aut
         after.append("sgld_noise")
     if gathers_screen_statistics(config, step + 1):
         after.append("screen_statistics")
-    return StepPlan(render, ("bilateral_grid",) if config.bilateral_grid else (), tuple(losses), tuple(after), events_at(config, step + 1))
+    return StepPlan(render, ("bilateral_grid",) if config.bilateral_grid is True else (), tuple(losses), tuple(after), events_at(config, step + 1))
 

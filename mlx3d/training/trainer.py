@@ -107,8 +107,10 @@ class TrainerConfig:
     mcmc_noise_scale: float = 0.0  # isotropic noise on every mean, std mcmc_noise_scale · extent · sqrt(means lr)
     mcmc_opacity_reg: float = 0.01
     mcmc_scale_reg: float = 0.01
-    # per-image affine colour grid absorbing exposure/white-balance differences (off unless enabled)
-    bilateral_grid: bool = False
+    # per-image affine colour grid absorbing exposure/white-balance differences; 'auto': on when the
+    # training photos' exposure varies (training.exposure, measured by initial_state; a Trainer made
+    # without it reads 'auto' as off)
+    bilateral_grid: bool | str = "auto"
     bilateral_grid_shape: tuple = (16, 16, 8)
     bilateral_grid_lr: float | None = None  # None: 2e-3 (vanilla, 2dgs, as gsplat) or 1e-3 (mcmc, measured on bench_data's exposure scene)
     bilateral_grid_warmup: int | None = None  # lr rises linearly from 1% over these steps, then decays to 1% at `steps`;
@@ -158,6 +160,8 @@ class TrainerConfig:
             self.densify_until = 25_000 if mcmc else 15_000
         if self.init_opacity is None:
             self.init_opacity = 0.5 if mcmc else 0.1
+        if self.bilateral_grid not in (True, False, "auto"):
+            raise ValueError(f"bilateral_grid must be True, False or 'auto', got {self.bilateral_grid!r}")
         if self.bilateral_grid_lr is None:
             self.bilateral_grid_lr = 1e-3 if mcmc else 2e-3
         if not self.bilateral_grid_lr > 0:
@@ -260,6 +264,8 @@ class GaussianTrainer:
                  scene_centre=None, ranks=None):
         self.model = model
         self.config = config or TrainerConfig()
+        if self.config.bilateral_grid == "auto":  # initial_state decides it from the dataset
+            self.config = replace(self.config, bilateral_grid=False)
         self.ranks = ranks if ranks is not None and ranks.size > 1 else None
         self.scene_extent = float(scene_extent) if scene_extent > 0 else 1.0
         self.scene_centre = None if scene_centre is None else np.asarray(scene_centre, np.float64).reshape(3)
