@@ -135,6 +135,17 @@ def held_out_metrics(model, dataset, background) -> dict:
     }
 
 
+def commit_info(root: str) -> dict:
+    """The commit measured (``commit``), and whether ``mlx3d/`` differed from it (``mlx3d_dirty``, ``mlx3d_changed``)."""
+    import subprocess
+
+    def git(*cmd):
+        return subprocess.run(["git", *cmd], cwd=root, capture_output=True, text=True).stdout
+
+    dirty = [line[3:] for line in git("status", "--porcelain", "--", "mlx3d").splitlines() if line.strip()]
+    return {"commit": git("rev-parse", "--short=10", "HEAD").strip(), "mlx3d_dirty": bool(dirty), "mlx3d_changed": sorted(dirty)}
+
+
 def parse_only(parser, text, choices, what: str) -> tuple:
     """The names in the comma-separated ``text`` of an ``--only`` option (every one of ``choices`` when it is
     empty); an unknown name is a usage error naming ``what`` they are (``scene``, ``capture``)."""

@@ -22,9 +22,14 @@ F-scores at 0.5 % and 1 % of it, normal consistency), with the train and
 extraction time and the extraction's peak memory (its own process).
 
 Captures, trained models and meshes stay in ``--data`` (git-ignored); a
-capture is rebuilt only when its settings changed. The page gets the table,
-the machine and load, and one picture per object (the true mesh and each
-extraction from a held-out camera, Blender Workbench).
+capture is rebuilt only when its settings changed, and a model is trained
+again only when it is missing or ``--retrain`` is given (each model's
+training figures are kept beside it, ``METHOD_STEPS.json``). Every row (with
+its date, commit, machine and load) is merged into
+``docs/benchmarks/mesh_objects/results.json``, replacing an earlier one of
+the same object, training, steps, extraction and resolution; the page is
+written from all the rows: the tables and one picture per object (the true
+mesh and each extraction from a held-out camera, Blender Workbench).
 """
 
 from __future__ import annotations
@@ -47,7 +52,7 @@ sys.path.insert(0, os.path.join(ROOT, "tests"))  # photo_capture: the similarity
 
 import captures  # noqa: E402  (bench/ is on sys.path when run as a script)
 import scenes  # noqa: E402
-from common import LoadSampler, machine_line, parse_only, peak_rss_mb  # noqa: E402
+from common import LoadSampler, commit_info, machine_line, parse_only, peak_rss_mb  # noqa: E402
 from mesh_quality import compare, render_meshes  # noqa: E402
 
 OBJECTS = ("suzanne", "bumpy_sphere", "torus_knot")
@@ -56,6 +61,8 @@ EXTRACTIONS = ("fusion", "poisson")
 FORMAT_VERSION = 1
 DOCS = os.path.join(ROOT, "docs", "benchmarks")
 PICTURES = "mesh_objects"
+RESULTS = os.path.join(DOCS, PICTURES, "results.json")
+KEY = ("object", "method", "steps", "extraction", "resolution")
 
 
 # ------------------------------------------------------------------ the objects (bpy)
@@ -214,6 +221,19 @@ def _extract_child(args) -> None:
     print(json.dumps({"extract_s": seconds, "extract_peak_mb": peak_rss_mb(), "faces": len(mesh.faces)}))
 
 
+def trained_model(method: str, args, data: str, model: str) -> dict:
+    """Train ``method`` into ``model`` unless it is there with its figures (``--retrain`` trains again)."""
+    figures = model[:-4] + ".json"
+    if not args.retrain and os.path.isfile(model) and os.path.isfile(figures):
+        with open(figures, encoding="utf-8") as f:
+            return json.load(f)
+    trained = {**_child("train", method, args, data_dir=data, model=model), **commit_info(ROOT),
+               "train_date": datetime.date.today().isoformat()}
+    with open(figures, "w", encoding="utf-8") as f:
+        json.dump(trained, f, indent=1)
+    return trained
+
+
 def _child(kind: str, value: str, args, **extra) -> dict:
     cmd = [sys.executable, os.path.abspath(__file__), f"--child-{kind}", value, "--data-dir", extra["data_dir"],
            "--model", extra["model"], "--steps", str(args.steps), "--resolution", str(args.resolution)]
@@ -251,20 +271,47 @@ def table(rows) -> str:
     return "\n".join(out)
 
 
-def write_page(path, rows, captured, load) -> None:
+def load_results() -> dict:
+    try:
+        with open(RESULTS, encoding="utf-8") as f:
+            return json.load(f)
+    except (OSError, ValueError):
+        return {"rows": [], "captures": {}}
+
+
+def save_results(results, rows, captured) -> None:
+    """Merge ``rows`` (replacing those of the same KEY) and the captures into RESULTS."""
+    keys = {tuple(r[k] for k in KEY) for r in rows}
+    results["rows"] = [r for r in results["rows"] if tuple(r[k] for k in KEY) not in keys] + rows
+    results["rows"].sort(key=lambda r: (OBJECTS.index(r["object"]) if r["object"] in OBJECTS else 99,
+                                        METHODS.index(r["method"]) if r["method"] in METHODS else 99, r["extraction"]))
+    results.setdefault("captures", {}).update({name: {k: v for k, v in info.items() if k != "frames"} for name, info in captured.items()})
+    os.makedirs(os.path.dirname(RESULTS), exist_ok=True)
+    with open(RESULTS, "w", encoding="utf-8") as f:
+        json.dump(results, f, indent=1)
+        f.write("\n")
+
+
+def write_page(path, results) -> None:
+    rows, captured = results["rows"], results["captures"]
+    runs = sorted({(r.get("date", "?"), r.get("machine", "?"), r.get("load_median", float("nan")), r.get("commit", "?"))
+                   for r in rows})
     lines = ["# Meshes of objects with known surfaces", "",
              "Each object is built with `bpy`, photographed with Cycles on a full orbit (60 photos, transparent background), "
              "its cameras solved from the photos by `mlx3d poses`, trained without points, and meshed; the meshes are "
              "compared with the object's own triangles after the similarity that maps the solved cameras onto Blender's "
-             "(`python bench/mesh_objects.py`; how each measure is defined is in its docstring).", "",
-             f"{machine_line()}, {datetime.date.today().isoformat()}; 1-minute load average during the run: "
-             f"median {load.get('median', float('nan')):.1f} on {os.cpu_count()} cores.", "",
-             "| object | photos placed | max rotation error | max position error |", "|---|---:|---:|---:|"]
-    for name, info in captured.items():
+             "(`python bench/mesh_objects.py`; how each measure is defined is in its docstring). The default route of "
+             "`mlx3d train` and `mlx3d mesh` is vanilla training, then fusion.", "",
+             "Measured on:", ""]
+    lines += [f"- {date}, commit `{commit}`: {machine}; 1-minute load average during the run: median {load:.1f} "
+              f"on {os.cpu_count()} cores" for date, machine, load, commit in runs]
+    lines += ["", "| object | photos placed | max rotation error | max position error |", "|---|---:|---:|---:|"]
+    for name in sorted(captured, key=lambda n: OBJECTS.index(n) if n in OBJECTS else 99):
+        info = captured[name]
         lines.append(f"| {name} | {info['registered']} of {info['photos']} | {info.get('rotation_deg', float('nan')):.2f}° | "
                      f"{info.get('position_pct', float('nan')):.2f} % |")
     lines += ["", table(rows), ""]
-    for name in captured:
+    for name in sorted(captured, key=lambda n: OBJECTS.index(n) if n in OBJECTS else 99):
         picture = os.path.join(PICTURES, f"{name}.png")
         if os.path.isfile(os.path.join(os.path.dirname(path), picture)):
             lines += [f"**{name}** (truth, then each training and extraction, from a held-out camera):", "",
@@ -284,6 +331,7 @@ def main() -> int:
     parser.add_argument("--resolution", type=int, default=128, help="extraction resolution (default 128)")
     parser.add_argument("--data", default=os.path.join(ROOT, "bench_data", "mesh_objects"))
     parser.add_argument("--markdown", default=None, help="write the page here (e.g. docs/benchmarks/mesh_objects.md)")
+    parser.add_argument("--retrain", action="store_true", help="train every model again, even where it is already trained")
     parser.add_argument("--child-train", help=argparse.SUPPRESS)
     parser.add_argument("--child-extract", help=argparse.SUPPRESS)
     parser.add_argument("--data-dir", help=argparse.SUPPRESS)
@@ -309,6 +357,7 @@ def main() -> int:
     load.start()
     bpy = capture = None
     rows, captured = [], {}
+    results, code = load_results(), commit_info(ROOT)
     for name in objects:
         folder = os.path.join(args.data, name)
         info_path = os.path.join(folder, "capture.json")
@@ -323,32 +372,37 @@ def main() -> int:
         print(f"{name}: {info['registered']} of {info['photos']} photos placed", file=sys.stderr, flush=True)
         matrix, truth = to_truth(folder, info["frames"]), read_mesh_ply(os.path.join(folder, "truth.ply"))
         data = os.path.join(folder, "data")
-        meshes = [os.path.join(folder, "truth.ply")]
         for method in methods:
             model = os.path.join(folder, f"{method}_{args.steps}.ply")
-            trained = _child("train", method, args, data_dir=data, model=model)
+            trained = trained_model(method, args, data, model)
             for extraction in extractions:
                 mesh = os.path.join(folder, f"{method}_{args.steps}_{extraction}_{args.resolution}.ply")
                 extracted = _child("extract", extraction, args, data_dir=data, model=model, mesh=mesh)
                 row = {"object": name, "method": method, "steps": args.steps, "extraction": extraction,
                        "resolution": args.resolution, **trained, **extracted,
-                       **measure(folder, os.path.basename(mesh)[:-4], mesh, matrix, truth)}
+                       **measure(folder, os.path.basename(mesh)[:-4], mesh, matrix, truth), **code,
+                       "date": datetime.date.today().isoformat(), "machine": machine_line(),
+                       "load_median": load.summary().get("median", float("nan"))}
                 rows.append(row)
-                meshes.append(mesh[:-4] + "_aligned.ply")
                 print(table([row]).splitlines()[-1], file=sys.stderr, flush=True)
-        if args.markdown and len(meshes) > 1:
-            os.makedirs(os.path.join(DOCS, PICTURES), exist_ok=True)
-            held_out = next(c for s, t, c in captures.camera_pairs(data, info["frames"]) if t.get("held_out"))
-            labels = ["truth"] + [os.path.basename(m)[:-len("_aligned.ply")] for m in meshes[1:]]
-            render_meshes(meshes, labels, held_out, os.path.join(os.path.dirname(os.path.abspath(args.markdown)), PICTURES, f"{name}.png"))
-        if args.markdown:  # after every object, so that a long run stopped early keeps what it measured
-            write_page(args.markdown, rows, captured, load.summary())
+        save_results(results, [r for r in rows if r["object"] == name], {name: info})  # after every object: a run stopped early keeps it
+        if args.markdown:
+            # the picture shows every extraction measured for the object, this run's and earlier ones
+            meshes = [os.path.join(folder, "truth.ply")] + [
+                os.path.join(folder, f"{r['method']}_{r['steps']}_{r['extraction']}_{r['resolution']}_aligned.ply")
+                for r in results["rows"] if r["object"] == name]
+            meshes = [m for m in meshes if os.path.isfile(m)]
+            if len(meshes) > 1:
+                os.makedirs(os.path.join(DOCS, PICTURES), exist_ok=True)
+                held_out = next(c for s, t, c in captures.camera_pairs(data, info["frames"]) if t.get("held_out"))
+                labels = ["truth"] + [os.path.basename(m)[:-len("_aligned.ply")] for m in meshes[1:]]
+                render_meshes(meshes, labels, held_out, os.path.join(os.path.dirname(os.path.abspath(args.markdown)), PICTURES, f"{name}.png"))
+            write_page(args.markdown, results)
     load.stop.set()
     load.join()
     print(table(rows))
     if args.markdown:
-        write_page(args.markdown, rows, captured, load.summary())
-        print(f"wrote {args.markdown}")
+        print(f"wrote {args.markdown} and {RESULTS}")
     return 0
 
 
