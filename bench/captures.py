@@ -147,10 +147,10 @@ def walk_poses(rng) -> list:
     return poses
 
 
-def orbit_poses(centre, distance, rng) -> list:
-    """A full orbit: a spiral of OBJECT_TURNS turns from OBJECT_ELEVATIONS[0] (below) to [1] degrees, jittered."""
+def orbit_poses(centre, distance, rng, elevations=OBJECT_ELEVATIONS) -> list:
+    """A full orbit: a spiral of OBJECT_TURNS turns from ``elevations[0]`` (below) to ``[1]`` degrees, jittered."""
     poses = []
-    lo, hi = OBJECT_ELEVATIONS
+    lo, hi = elevations
     for i in range(OBJECT_VIEWS):
         t = i / (OBJECT_VIEWS - 1)
         a = 2.0 * math.pi * OBJECT_TURNS * t + math.radians(rng.normal(0.0, 2.0))

@@ -8,7 +8,12 @@ Each object (a subdivided Suzanne, a sphere displaced by a noise texture, a
 (2, 3) torus knot), textured with a weathered procedural material, is
 rendered with Cycles from 60 cameras on a two-turn spiral from 35 degrees
 below to 65 above it, with a transparent background (RGBA), at ``--size`` x
-3/4 pixels; its cameras are solved from the photos by ``mlx3d poses``
+3/4 pixels; ``suzanne_ground`` is the same Suzanne 0.1 above a textured
+ground running to the horizon, in opaque photos from 8 to 65 degrees above
+(what a capture of a statue on a floor looks like; its extracted meshes are
+cropped to the true mesh's bounding box grown by 2 % of its diagonal before
+they are measured, as DTU's observation masks do, so the ground is left
+out); its cameras are solved from the photos by ``mlx3d poses``
 (``mlx3d.sfm.solve_poses``: no Blender pose and no points are handed over).
 Training starts from the sparse points of the solve (every 8th photo held
 out), black background, as ``mlx3d train DATA`` does, for ``--steps`` steps
@@ -55,7 +60,9 @@ import scenes  # noqa: E402
 from common import LoadSampler, commit_info, machine_line, parse_only, peak_rss_mb  # noqa: E402
 from mesh_quality import compare, render_meshes  # noqa: E402
 
-OBJECTS = ("suzanne", "bumpy_sphere", "torus_knot")
+OBJECTS = ("suzanne", "bumpy_sphere", "torus_knot", "suzanne_ground")
+ON_GROUND = {"suzanne_ground": (8.0, 65.0)}  # opaque photos over a ground plane: the orbit's elevations (degrees)
+CROP = 0.02  # meshes of objects on the ground are cropped to the truth's box grown by this fraction of its diagonal
 METHODS = ("vanilla", "2dgs")
 EXTRACTIONS = ("fusion", "poisson")
 FORMAT_VERSION = 1
@@ -142,7 +149,20 @@ def build_torus_knot(bpy):
     return scene, [_finish(bpy, obj, material)], np.zeros(3)
 
 
-BUILDERS = {"suzanne": build_suzanne, "bumpy_sphere": build_bumpy_sphere, "torus_knot": build_torus_knot}
+def build_suzanne_on_ground(bpy):
+    """Suzanne (as ``build_suzanne``) 0.1 above a textured ground out to the horizon; the ground is not measured."""
+    scene, objects, centre = build_suzanne(bpy)
+    ground = scenes._material(bpy, "Gravel", "NOISE", [(0.05, 0.05, 0.04), (0.30, 0.26, 0.20), (0.55, 0.50, 0.42), (0.15, 0.18, 0.10)],
+                              scale=4.0, roughness=0.9, Detail=10.0, Roughness=0.7)
+    bottom = min((o.matrix_world @ v.co).z for o in objects for v in o.data.vertices)
+    for part in scenes._ground(bpy, scene, ground, 2.5, scenes.GROUND_SIZE):
+        part.location.z = bottom - 0.1
+    bpy.context.view_layer.update()
+    return scene, objects, centre
+
+
+BUILDERS = {"suzanne": build_suzanne, "bumpy_sphere": build_bumpy_sphere, "torus_knot": build_torus_knot,
+            "suzanne_ground": build_suzanne_on_ground}
 
 
 # ------------------------------------------------------------------ capture and solve
@@ -157,10 +177,10 @@ def make_capture(bpy, capture, name, folder, args) -> dict:
     os.makedirs(folder)
     rng = np.random.default_rng(captures.SEED + OBJECTS.index(name))
     render_dir = os.path.join(folder, "render")
-    poses = captures.orbit_poses(np.zeros(3), captures.OBJECT_DISTANCE, rng)
+    poses = captures.orbit_poses(np.zeros(3), captures.OBJECT_DISTANCE, rng, ON_GROUND.get(name, captures.OBJECT_ELEVATIONS))
     t0 = time.perf_counter()
     meta = captures.render(bpy, capture, name, render_dir, BUILDERS[name], poses, scenes.OUTDOOR_LENS, args.dims,
-                           args.samples, transparent=True)
+                           args.samples, transparent=name not in ON_GROUND)
     shutil.copy(os.path.join(render_dir, capture.MESH_NAME), os.path.join(folder, "truth.ply"))
     frames = captures.write_photos(render_dir, meta, os.path.join(folder, "photos"), size=args.dims)
     shutil.rmtree(render_dir)
@@ -247,12 +267,22 @@ def _child(kind: str, value: str, args, **extra) -> dict:
 
 
 # ------------------------------------------------------------------ measures
-def measure(row_dir, name, mesh_path, matrix, truth):
+def measure(row_dir, name, mesh_path, matrix, truth, crop=False):
+    """The measures of the mesh at ``mesh_path`` taken into the truth's frame by ``matrix``; with ``crop``, only its
+    faces inside the truth's bounding box grown by CROP of its diagonal."""
     from mlx3d.io.mesh_ply import read_mesh_ply
     from mlx3d.meshing import SurfaceMesh
+    from mlx3d.meshing.mesh import compact_faces
 
     mesh = read_mesh_ply(mesh_path)
-    aligned = SurfaceMesh(mesh.vertices @ matrix[:3, :3].T + matrix[:3, 3], mesh.faces, mesh.colors)
+    vertices, faces, colors = mesh.vertices @ matrix[:3, :3].T + matrix[:3, 3], mesh.faces, mesh.colors
+    if crop:
+        lo, hi = truth.vertices.min(axis=0), truth.vertices.max(axis=0)
+        margin = CROP * float(np.linalg.norm(hi - lo))
+        inside = np.all((vertices >= lo - margin) & (vertices <= hi + margin), axis=1)
+        vertices, faces, kept = compact_faces(vertices, faces, inside[faces].all(axis=1))
+        colors = None if colors is None else colors[kept]
+    aligned = SurfaceMesh(vertices, faces, colors)
     aligned.save_ply(os.path.join(row_dir, f"{name}_aligned.ply"))
     scores = compare(aligned, truth)
     return {**scores, **{f"{k}_pct": 100.0 * scores[k] / scores["diagonal"] for k in ("chamfer", "accuracy", "completeness")}}
@@ -297,7 +327,9 @@ def write_page(path, results) -> None:
     runs = sorted({(r.get("date", "?"), r.get("machine", "?"), r.get("load_median", float("nan")), r.get("commit", "?"))
                    for r in rows})
     lines = ["# Meshes of objects with known surfaces", "",
-             "Each object is built with `bpy`, photographed with Cycles on a full orbit (60 photos, transparent background), "
+             "Each object is built with `bpy`, photographed with Cycles on a full orbit (60 photos, transparent background; "
+             "`suzanne_ground`: on a textured ground, opaque photos from 8° to 65° above, meshes cropped to the true mesh's "
+             "box grown by 2 % of its diagonal before measuring), "
              "its cameras solved from the photos by `mlx3d poses`, trained without points, and meshed; the meshes are "
              "compared with the object's own triangles after the similarity that maps the solved cameras onto Blender's "
              "(`python bench/mesh_objects.py`; how each measure is defined is in its docstring). The default route of "
@@ -380,7 +412,7 @@ def main() -> int:
                 extracted = _child("extract", extraction, args, data_dir=data, model=model, mesh=mesh)
                 row = {"object": name, "method": method, "steps": args.steps, "extraction": extraction,
                        "resolution": args.resolution, **trained, **extracted,
-                       **measure(folder, os.path.basename(mesh)[:-4], mesh, matrix, truth), **code,
+                       **measure(folder, os.path.basename(mesh)[:-4], mesh, matrix, truth, crop=name in ON_GROUND), **code,
                        "date": datetime.date.today().isoformat(), "machine": machine_line(),
                        "load_median": load.summary().get("median", float("nan"))}
                 rows.append(row)
