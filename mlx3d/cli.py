@@ -402,8 +402,9 @@ def cmd_mesh(args) -> None:
     if args.method == "fusion":
         where = f"{len(cameras)} training views" if cameras else "60 views around the model"
         with step(f"fusing the depth of {where} at resolution {resolution}"):
-            mesh = model.fused_mesh(cameras, resolution=resolution, voxel_size=args.voxel_size,
-                                    truncation=args.truncation, cleanup=args.cleanup, progress=ProgressLine("meshing"))
+            bounds = None if args.bounds is None else np.reshape(args.bounds, (2, 3))
+            mesh = model.fused_mesh(cameras, resolution=resolution, voxel_size=args.voxel_size, truncation=args.truncation,
+                                    cleanup=args.cleanup, progress=ProgressLine("meshing"), bounds=bounds)
     else:
         trim = DEFAULT_TRIM if args.trim is None else args.trim
         centres = None if cameras is None else [camera.center for camera in cameras]
@@ -585,6 +586,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="voxels along the largest side (default 128; poisson's memory grows with its cube)")
     p.add_argument("--voxel-size", type=float, default=None, metavar="LENGTH", help="fusion: voxel size in scene units (instead of --resolution)")
     p.add_argument("--truncation", type=float, default=None, metavar="LENGTH", help="fusion: signed distance truncation in scene units (default 4 voxels)")
+    p.add_argument("--bounds", type=float, nargs=6, default=None, metavar=("XMIN", "YMIN", "ZMIN", "XMAX", "YMAX", "ZMAX"),
+                   help="fusion: the box to mesh, in scene units (default: the surfaces the views share)")
     p.add_argument("--cleanup", type=float, default=0.01, metavar="FRACTION",
                    help="drop pieces of fewer faces than this fraction of the largest piece's (default 0.01; 0 keeps all)")
     p.add_argument("--padding", type=float, default=0.1, help="poisson: grid margin, as a fraction of the bounding box's largest side")

@@ -164,6 +164,11 @@ def test_mesh_writes_a_coloured_mesh_and_refuses_transparent_models(tmp_path, ca
         mesh = read_mesh_ply(out)
         assert np.abs(np.linalg.norm(mesh.vertices, axis=1) - 1.0).max() < 2 * 2.4 / 48
         np.testing.assert_allclose(mesh.colors.mean(0), [0.9, 0.2, 0.1], atol=2 / 255)
+        if method == "fusion":  # a box given by hand: its part of the ball only (the truncation band beyond it)
+            assert main(["mesh", str(tmp_path / "ball.ply"), "--out", str(out), "--resolution", "48",
+                         "--data", str(tmp_path / "data"), "--bounds", "-1.2", "-1.2", "0.3", "1.2", "1.2", "1.2"]) == 0
+            z = read_mesh_ply(out).vertices[:, 2]
+            assert z.min() > 0.3 - 4 * 2.4 / 48 - 1e-6 and z.max() > 0.95
         m.params["opacities"] = mx.full((6000,), -9.0)
         m.save_ply(tmp_path / "clear.ply")
         assert main(["mesh", str(tmp_path / "clear.ply"), "--out", str(tmp_path / "clear_mesh.ply"), "--method", method,

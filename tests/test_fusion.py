@@ -96,6 +96,28 @@ def test_a_far_backdrop_stays_out_of_the_volume():
     assert np.abs(np.linalg.norm(mesh.vertices, axis=1) - 1.0).max() < 2 * grid.voxel
 
 
+def test_an_object_on_a_floor_keeps_the_voxels_of_the_object_alone():
+    """A sphere resting above an endless floor, seen from above all round (a statue on the ground): the floor
+    fills the edges of every photo out to the horizon, but the volume holds what the views share, so the
+    sphere comes out about as fine as with no floor at all."""
+    cams = ring_cameras(40, (8, 65), size=(120, 90))
+    views = []
+    for c in cams:
+        alone = sphere_view(c)
+        origins, dirs = c.rays()
+        o = np.broadcast_to(origins, dirs.shape)
+        down = dirs[..., 2] < -1e-9
+        t = np.where(down, (-1.1 - o[..., 2]) / np.where(down, dirs[..., 2], -1.0), np.inf)
+        floor_z = np.asarray(c.world_to_camera(o + dirs * np.where(down, t, 0.0)[..., None]))[..., 2]
+        views.append(DepthView(c, np.where(np.isfinite(alone.depth), alone.depth, np.where(down, floor_z, np.inf))))
+    alone = fusion_grid([sphere_view(c) for c in cams], 64).voxel
+    voxel = fusion_grid(views, 64).voxel
+    assert voxel < 2.5 * alone  # the floor near the sphere only (all the framed floor: 9x)
+    mesh = fuse_depth_maps(views, resolution=64)
+    on_sphere = mesh.vertices[mesh.vertices[:, 2] > -1.0]
+    assert np.abs(np.linalg.norm(on_sphere, axis=1) - 1.0).mean() < 0.2 * voxel < 0.015
+
+
 def test_small_pieces_are_dropped_by_their_share_of_the_largest():
     cams = ring_cameras(30, (-60, 60), distance=5.0)
     views = []

@@ -42,6 +42,9 @@ __all__ = ["BLOCK", "DEPTHS", "DepthView", "FusionGrid", "fuse_depth_maps", "fus
 BLOCK = 8
 #: The space meshed by default reaches this many camera extents from the cameras' mean (see :func:`reach`).
 REACH = 4.0
+#: By default the volume holds the surfaces at least this fraction of the best-shared surface's views frame.
+SHARED = 0.5
+_BOUND_POINTS = 50_000  # surface points (at most) that set the default bounds
 #: Default truncation, in voxels (the 2DGS paper's fusion uses 4 to 5).
 TRUNCATION_VOXELS = 4.0
 _NODES = BLOCK**3
@@ -99,10 +102,15 @@ def reach(cameras) -> tuple:
 
 def fusion_grid(views, resolution: int = 256, voxel_size: float | None = None, truncation: float | None = None,
                 bounds=None) -> FusionGrid:
-    """The lattice for ``views``: over ``bounds`` ((2, 3) min and max corners; default the 0.5 to 99.5
-    percentiles, per axis, of the seen surface points within :func:`reach` of the views' cameras) plus the
+    """The lattice for ``views``: over ``bounds`` ((2, 3) min and max corners; default: see below) plus the
     truncation, with ``voxel_size`` (default the bounds' longest side / ``resolution``) and ``truncation``
-    (default :data:`TRUNCATION_VOXELS` voxels)."""
+    (default :data:`TRUNCATION_VOXELS` voxels).
+
+    Default bounds: the 0.5 to 99.5 percentiles, per axis, of the seen surface points within :func:`reach`
+    of the views' cameras that the views share, i.e. that at least :data:`SHARED` times as many views frame
+    (in front of the camera, inside the picture) as frame the most shared point, and at least two. What
+    every view of an orbit looks at sets the volume, not the floor or the far walls at the edges of the
+    photos, which the voxels would otherwise have to stretch over."""
     if bounds is None:
         points = [_surface_points(v, stride=4) for v in views]
         points = np.concatenate(points) if points else np.zeros((0, 3))
@@ -113,7 +121,7 @@ def fusion_grid(views, resolution: int = 256, voxel_size: float | None = None, t
         if len(near) == 0:
             raise MeshingError(f"the depth maps see surfaces only farther than {radius:.4g} from the cameras' centre "
                                "(4 times their extent); give bounds to mesh them")
-        bounds = np.percentile(near, [0.5, 99.5], axis=0)
+        bounds = np.percentile(_shared_points(near, views), [0.5, 99.5], axis=0)
     bounds = np.asarray(bounds, dtype=np.float64).reshape(2, 3)
     if not np.isfinite(bounds).all() or (bounds[1] < bounds[0]).any():
         raise MeshingError(f"bounds must be finite (min corner, max corner), got {bounds.tolist()}")
@@ -134,6 +142,17 @@ def fusion_grid(views, resolution: int = 256, voxel_size: float | None = None, t
     if math.prod(shape) > 2**34:
         raise MeshingError(f"a {shape[0]}x{shape[1]}x{shape[2]} lattice is too large; use a larger voxel_size")
     return FusionGrid(origin=origin, voxel=voxel, shape=shape, truncation=trunc)
+
+
+def _shared_points(points: np.ndarray, views) -> np.ndarray:
+    """The ``points`` (M, 3) that at least :data:`SHARED` times the largest number of views framing one point
+    frame, and at least two (all of them when no point is framed twice); at most ``_BOUND_POINTS``, evenly taken."""
+    points = points[:: max(1, -(-len(points) // _BOUND_POINTS))]
+    framed = np.zeros(len(points), np.int64)
+    for view in views:
+        framed += _sample(view, points)[2]
+    need = max(2.0, SHARED * framed.max())
+    return points[framed >= need] if framed.max() >= 2 else points
 
 
 def _pixels(camera) -> np.ndarray:

@@ -606,15 +606,16 @@ class GaussianModel:
 
     def fused_mesh(
         self, cameras=None, resolution: int = 128, voxel_size: float | None = None, truncation: float | None = None,
-        depth: str = "median", min_alpha: float = 0.5, cleanup: float = 0.01, progress=None,
+        depth: str = "median", min_alpha: float = 0.5, cleanup: float = 0.01, progress=None, bounds=None,
     ):
         """A triangle mesh by depth fusion, as a ``mlx3d.meshing.SurfaceMesh`` with vertex colours.
 
         Renders depth (``'median'`` or ``'expected'``, see ``mlx3d.meshing.fusion.depth_views``; pixels
         covered less than ``min_alpha`` are empty) and colour from ``cameras`` (e.g. the training cameras;
         None: 60 views on a spiral around the model, ``mlx3d.meshing.fusion.orbit_cameras``), fuses the depths into a truncated signed
-        distance volume (``mlx3d.meshing.fuse_depth_maps``: ``resolution`` voxels along the seen surface's
-        longest side unless ``voxel_size``; ``truncation`` in scene units, default 4 voxels) and extracts its
+        distance volume (``mlx3d.meshing.fuse_depth_maps``: over ``bounds``, (2, 3) min and max corners, default
+        the surfaces the views share; ``resolution`` voxels along its longest side unless ``voxel_size``;
+        ``truncation`` in scene units, default 4 voxels) and extracts its
         zero level; space no camera saw stays empty. Pieces of fewer faces than ``cleanup`` times the largest
         piece's are dropped (0 keeps all). In the model's frame and units. ``progress(done, total)`` may raise
         to cancel. Raises ``MeshingError`` when the cameras see no surface.
@@ -626,7 +627,7 @@ class GaussianModel:
         report = None if progress is None else (lambda offset: lambda done, total: progress(offset + done, 3 * count))
         views = depth_views(self, cameras, depth, min_alpha, progress=None if report is None else report(0))
         require_surface(views, min_alpha)
-        mesh = fuse_depth_maps(views, resolution, voxel_size, truncation, progress=None if report is None else report(count))
+        mesh = fuse_depth_maps(views, resolution, voxel_size, truncation, bounds, progress=None if report is None else report(count))
         return keep_large_components(mesh, cleanup) if cleanup else mesh
 
     def extract_surface_mesh(
