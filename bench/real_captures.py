@@ -40,7 +40,7 @@ import subprocess
 import sys
 import threading
 
-from common import LoadSampler, held_out_metrics, machine_line, peak_rss_mb, train_to_milestones  # bench/ is on sys.path when run as a script
+from common import LoadSampler, commit_info, held_out_metrics, machine_line, peak_rss_mb, train_to_milestones  # bench/ is on sys.path when run as a script
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
@@ -107,14 +107,6 @@ def _milestones(text) -> list[int]:
 
 
 # ------------------------------------------------------------------ the code measured
-def _commit() -> dict:
-    def git(*cmd):
-        return subprocess.run(["git", *cmd], cwd=ROOT, capture_output=True, text=True).stdout
-
-    dirty = [line[3:] for line in git("status", "--porcelain", "--", "mlx3d").splitlines() if line.strip()]
-    return {"commit": git("rev-parse", "--short=10", "HEAD").strip(), "mlx3d_dirty": bool(dirty), "mlx3d_changed": sorted(dirty)}
-
-
 def _small_copy(src, dst) -> None:
     from PIL import Image
 
@@ -340,7 +332,7 @@ def main() -> int:
         print(f"wrote {args.markdown}")
         return 0
 
-    code = _commit()
+    code = commit_info(ROOT)
     failed = 0
     for scene in scenes:
         data = os.path.join(args.data, scene, "data")
