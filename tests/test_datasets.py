@@ -356,6 +356,20 @@ def test_colmap_tracks_say_where_each_photo_sees_its_points(tmp_path, binary):
     assert load_colmap(tmp_path / "none").observations is None
 
 
+@pytest.mark.parametrize("line, says", [("1.5 2.5", "as X Y POINT3D_ID triples, got 2 values"),
+                                         ("1.5 2.5 seven", "malformed 2D points of image")])
+def test_colmap_text_2d_points_that_are_not_triples_of_numbers_are_named(tmp_path, line, says):
+    scene = colmap_scene()
+    make_colmap(tmp_path, False, scene)
+    images = tmp_path / "sparse" / "0" / "images.txt"
+    lines = images.read_text().splitlines()
+    first = next(i for i, text in enumerate(lines) if text and not text.startswith("#"))
+    lines[first + 1] = line
+    images.write_text("\n".join(lines) + "\n")
+    with pytest.raises(DatasetError, match=f"images.txt:{first + 2}: .*{says}"):
+        load_colmap(tmp_path)
+
+
 def test_colmap_without_points3d_has_no_points(tmp_path):
     make_colmap(tmp_path)
     (tmp_path / "sparse" / "0" / "points3D.bin").unlink()
