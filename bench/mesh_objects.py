@@ -18,7 +18,8 @@ out); its cameras are solved from the photos by ``mlx3d poses``
 Training starts from the sparse points of the solve (every 8th photo held
 out), black background, as ``mlx3d train DATA`` does, for ``--steps`` steps
 per method. Each model is meshed by each extraction method at
-``--resolution`` (fusion from the training cameras, Poisson with normals
+``--resolution`` (fusion from the training cameras, of their median depth,
+or with ``fusion-expected`` of their expected depth; Poisson with normals
 towards them), the mesh is taken into Blender's frame by the similarity that
 best maps the solved cameras onto the true ones, and compared with the
 object's own triangles by ``bench/mesh_quality.py``'s measures (Chamfer and
@@ -64,7 +65,8 @@ OBJECTS = ("suzanne", "bumpy_sphere", "torus_knot", "suzanne_ground")
 ON_GROUND = {"suzanne_ground": (8.0, 65.0)}  # opaque photos over a ground plane: the orbit's elevations (degrees)
 CROP = 0.02  # meshes of objects on the ground are cropped to the truth's box grown by this fraction of its diagonal
 METHODS = ("vanilla", "2dgs")
-EXTRACTIONS = ("fusion", "poisson")
+EXTRACTIONS = ("fusion", "poisson", "fusion-expected")
+DEFAULT_EXTRACTIONS = ("fusion", "poisson")
 FORMAT_VERSION = 1
 DOCS = os.path.join(ROOT, "docs", "benchmarks")
 PICTURES = "mesh_objects"
@@ -232,8 +234,8 @@ def _extract_child(args) -> None:
     cameras = [dataset.frames[i].camera for i in dataset.train]
     model = GaussianModel.load(args.model)
     t0 = time.perf_counter()
-    if args.child_extract == "fusion":
-        mesh = model.fused_mesh(cameras, resolution=args.resolution)
+    if args.child_extract.startswith("fusion"):
+        mesh = model.fused_mesh(cameras, resolution=args.resolution, depth="expected" if args.child_extract == "fusion-expected" else "median")
     else:
         mesh = model.surface_mesh(resolution=args.resolution, orient_towards=[c.center for c in cameras])
     seconds = time.perf_counter() - t0
@@ -310,7 +312,9 @@ def load_results() -> dict:
 
 
 def save_results(results, rows, captured) -> None:
-    """Merge ``rows`` (replacing those of the same KEY) and the captures into RESULTS."""
+    """Merge ``rows`` (replacing those of the same KEY) and the captures into RESULTS as it is on disk now (another
+    run may have added rows since ``results`` was read); ``results`` becomes that."""
+    results.update(load_results())
     keys = {tuple(r[k] for k in KEY) for r in rows}
     results["rows"] = [r for r in results["rows"] if tuple(r[k] for k in KEY) not in keys] + rows
     results["rows"].sort(key=lambda r: (OBJECTS.index(r["object"]) if r["object"] in OBJECTS else 99,
@@ -356,7 +360,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--objects", default=",".join(OBJECTS))
     parser.add_argument("--methods", default=",".join(METHODS))
-    parser.add_argument("--extract", default=",".join(EXTRACTIONS))
+    parser.add_argument("--extract", default=",".join(DEFAULT_EXTRACTIONS), help=f"comma-separated, of {', '.join(EXTRACTIONS)}")
     parser.add_argument("--steps", type=int, default=7000)
     parser.add_argument("--size", type=int, default=320, help="photo width in pixels, height 3/4 of it (default 320)")
     parser.add_argument("--samples", type=int, default=16, help="Cycles samples per pixel (default 16)")
