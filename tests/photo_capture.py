@@ -61,7 +61,7 @@ def photo_orbit(folder, count: int = 24, size: int = 256, seed: int = 0, cameras
     return cameras
 
 
-def _umeyama(a: np.ndarray, b: np.ndarray):
+def umeyama(a: np.ndarray, b: np.ndarray):
     """(scale, rotation, translation) minimising |s R a + t - b|^2 over rows."""
     ma, mb = a.mean(0), b.mean(0)
     u, sv, vt = np.linalg.svd((b - mb).T @ (a - ma))
@@ -85,7 +85,7 @@ def similarity(solved, truth):
         return np.concatenate([centres, centres + spread * np.array([c.R[2] for c in cameras]),
                                centres - spread * np.array([c.R[1] for c in cameras])])
 
-    return _umeyama(marks(solved, a, spread_a), marks(truth, b, spread_b))
+    return umeyama(marks(solved, a, spread_a), marks(truth, b, spread_b))
 
 
 def similarity_errors(solved, truth):
