@@ -46,8 +46,10 @@ capture is rebuilt only when its settings changed, and a model is trained
 its date, commit, machine and load) is merged into
 ``docs/benchmarks/mesh_objects/results.json``, replacing an earlier one of
 the same object, training, steps, extraction and resolution; the page is
-written from all the rows: the tables and one picture per object (the true
-mesh and each extraction from a held-out camera, Blender Workbench).
+written from all the rows: the tables, its hand-written notes (kept between
+``<!-- notes:results -->`` and ``<!-- /notes:results -->``) and one picture
+per object (the true mesh and each extraction from a held-out camera,
+Blender Workbench).
 """
 
 from __future__ import annotations
@@ -348,6 +350,10 @@ def measure(row_dir, name, mesh_path, matrix, truth, crop=False, refine=None):
         inside = np.all((vertices >= lo - margin) & (vertices <= hi + margin), axis=1)
         vertices, faces, kept = compact_faces(vertices, faces, inside[faces].all(axis=1))
         colors = None if colors is None else colors[kept]
+    if len(faces) == 0:  # e.g. Poisson over a box that a backdrop stretched: nothing left near the object
+        nan = float("nan")
+        return {"chamfer_pct": nan, "accuracy_pct": nan, "completeness_pct": nan, "normal_consistency": nan, "f_0.5": 0.0,
+                "f_1": 0.0, "empty": True}
     aligned = SurfaceMesh(vertices, faces, colors)
     aligned.save_ply(os.path.join(row_dir, f"{name}_aligned.ply"))
     scores = compare(aligned, truth)
@@ -402,10 +408,26 @@ def save_results(results, rows, captured) -> None:
         f.write("\n")
 
 
+NOTES_START, NOTES_END = "<!-- notes:results -->", "<!-- /notes:results -->"
+
+
+def _notes(path) -> str:
+    """The page's hand-written part between NOTES_START and NOTES_END (what the numbers and pictures show), kept
+    when the page is written again."""
+    try:
+        with open(path, encoding="utf-8") as f:
+            text = f.read()
+    except OSError:
+        return "(Not described yet.)"
+    start, end = text.find(NOTES_START), text.find(NOTES_END)
+    return text[start + len(NOTES_START):end].strip() if 0 <= start < end else "(Not described yet.)"
+
+
 def write_page(path, results) -> None:
     rows, captured = results["rows"], results["captures"]
-    runs = sorted({(r.get("date", "?"), r.get("machine", "?"), r.get("load_median", float("nan")), r.get("commit", "?"))
-                   for r in rows})
+    runs = {}
+    for r in rows:
+        runs.setdefault((r.get("date", "?"), r.get("machine", "?"), r.get("commit", "?")), []).append(r.get("load_median", float("nan")))
     lines = ["# Meshes of objects with known surfaces", "",
              "Each object is built with `bpy`, photographed with Cycles on a full orbit (60 photos, transparent background; "
              "`suzanne_ground`: on a textured ground, opaque photos from 8° to 65° above, meshes cropped to the true mesh's "
@@ -415,14 +437,14 @@ def write_page(path, results) -> None:
              "(`python bench/mesh_objects.py`; how each measure is defined is in its docstring). The default route of "
              "`mlx3d train` and `mlx3d mesh` is vanilla training, then fusion.", "",
              "Measured on:", ""]
-    lines += [f"- {date}, commit `{commit}`: {machine}; 1-minute load average during the run: median {load:.1f} "
-              f"on {os.cpu_count()} cores" for date, machine, load, commit in runs]
+    lines += [f"- {date}, commit `{commit}`: {machine}; 1-minute load average during the runs: median {min(loads):.1f} "
+              f"to {max(loads):.1f} on {os.cpu_count()} cores" for (date, machine, commit), loads in sorted(runs.items())]
     lines += ["", "| object | photos placed | max rotation error | max position error |", "|---|---:|---:|---:|"]
     for name in sorted(captured, key=lambda n: OBJECTS.index(n) if n in OBJECTS else 99):
         info = captured[name]
         lines.append(f"| {name} | {info['registered']} of {info['photos']} | {info.get('rotation_deg', float('nan')):.2f}° | "
                      f"{info.get('position_pct', float('nan')):.2f} % |")
-    lines += ["", table(rows), ""]
+    lines += ["", table(rows), "", NOTES_START, _notes(path), NOTES_END, ""]
     for name in sorted(captured, key=lambda n: OBJECTS.index(n) if n in OBJECTS else 99):
         picture = os.path.join(PICTURES, f"{name}.png")
         if os.path.isfile(os.path.join(os.path.dirname(path), picture)):
