@@ -558,5 +558,6 @@ def test_auto_grid_is_decided_from_the_dataset_and_off_without_one():
     trainer = GaussianTrainer(model, TrainerConfig(), num_images=4)
     assert trainer.config.bilateral_grid is False and trainer.bilateral is None
     assert GaussianTrainer(model, TrainerConfig(bilateral_grid=True), num_images=4).bilateral.num_images == 4
+    assert TrainerConfig(bilateral_grid=np.True_).bilateral_grid is True  # as the step plan reads it
     with pytest.raises(ValueError, match="bilateral_grid must be True, False or 'auto'"):
         TrainerConfig(bilateral_grid="on")

@@ -38,15 +38,14 @@ MIN_OBSERVATIONS = 20
 DARK, CLIPPED = 0.05, 0.98
 
 
-def photo_gains(dataset, frames=None) -> dict[int, np.ndarray]:
-    """Per frame (index) with enough observations: the median ``log(pixel / point colour)`` per channel, (3,).
-
-    frames: frame indices to measure (default: the training split)."""
+def photo_gains(dataset) -> dict[int, np.ndarray]:
+    """Per training frame (index) with enough observations: the median ``log(pixel / point colour)`` per
+    channel, (3,)."""
     if dataset.observations is None or dataset.point_colors is None:
         return {}
     colours = dataset.point_colors.astype(np.float32) / 255.0
     gains = {}
-    for i in dataset.train if frames is None else frames:
+    for i in dataset.train:
         xy, index = dataset.observations[i]
         if len(index) < MIN_OBSERVATIONS:
             continue

@@ -162,6 +162,8 @@ class TrainerConfig:
             self.init_opacity = 0.5 if mcmc else 0.1
         if self.bilateral_grid not in (True, False, "auto"):
             raise ValueError(f"bilateral_grid must be True, False or 'auto', got {self.bilateral_grid!r}")
+        if self.bilateral_grid != "auto":
+            self.bilateral_grid = bool(self.bilateral_grid)  # a numpy bool too: the step plan tests `is True`
         if self.bilateral_grid_lr is None:
             self.bilateral_grid_lr = 1e-3 if mcmc else 2e-3
         if not self.bilateral_grid_lr > 0:
