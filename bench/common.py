@@ -135,6 +135,17 @@ def held_out_metrics(model, dataset, background) -> dict:
     }
 
 
+def load_results(path: str) -> dict:
+    """A benchmark's results file, ``{"rows": [...], "captures": {...}}``; empty ones when it is missing or unreadable."""
+    import json
+
+    try:
+        with open(path, encoding="utf-8") as f:
+            return json.load(f)
+    except (OSError, ValueError):
+        return {"rows": [], "captures": {}}
+
+
 def commit_info(root: str) -> dict:
     """The commit measured (``commit``), and whether ``mlx3d/`` differed from it (``mlx3d_dirty``, ``mlx3d_changed``)."""
     import subprocess

@@ -72,7 +72,7 @@ sys.path.insert(0, os.path.join(ROOT, "tests"))  # photo_capture: the similarity
 
 import captures  # noqa: E402  (bench/ is on sys.path when run as a script)
 import scenes  # noqa: E402
-from common import LoadSampler, commit_info, machine_line, parse_only, peak_rss_mb  # noqa: E402
+from common import LoadSampler, commit_info, load_results, machine_line, parse_only, peak_rss_mb  # noqa: E402
 from mesh_quality import compare, render_meshes, sample_surface  # noqa: E402
 
 OBJECTS = ("suzanne", "bumpy_sphere", "torus_knot", "suzanne_ground")
@@ -385,18 +385,10 @@ def table(rows) -> str:
     return "\n".join(out)
 
 
-def load_results() -> dict:
-    try:
-        with open(RESULTS, encoding="utf-8") as f:
-            return json.load(f)
-    except (OSError, ValueError):
-        return {"rows": [], "captures": {}}
-
-
 def save_results(results, rows, captured) -> None:
     """Merge ``rows`` (replacing those of the same KEY) and the captures into RESULTS as it is on disk now (another
     run may have added rows since ``results`` was read); ``results`` becomes that."""
-    results.update(load_results())
+    results.update(load_results(RESULTS))
     keys = {tuple(r[k] for k in KEY) for r in rows}
     results["rows"] = [r for r in results["rows"] if tuple(r[k] for k in KEY) not in keys] + rows
     results["rows"].sort(key=lambda r: (OBJECTS.index(r["object"]) if r["object"] in OBJECTS else 99,
@@ -491,7 +483,7 @@ def main() -> int:
     load.start()
     bpy = capture = None
     rows, captured = [], {}
-    results, code = load_results(), commit_info(ROOT)
+    results, code = load_results(RESULTS), commit_info(ROOT)
     for name in objects:
         folder = os.path.join(args.data, name)
         info_path = os.path.join(folder, "capture.json")

@@ -40,7 +40,7 @@ import subprocess
 import sys
 import threading
 
-from common import LoadSampler, commit_info, held_out_metrics, machine_line, peak_rss_mb, train_to_milestones  # bench/ is on sys.path when run as a script
+from common import LoadSampler, commit_info, held_out_metrics, load_results, machine_line, peak_rss_mb, train_to_milestones  # bench/ is on sys.path when run as a script
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
@@ -273,14 +273,6 @@ Machine: {'; '.join(machines) if machines else '(no runs yet)'}.
 
 
 # ------------------------------------------------------------------ driver
-def _load_results() -> dict:
-    try:
-        with open(RESULTS, encoding="utf-8") as f:
-            return json.load(f)
-    except (OSError, ValueError):
-        return {"rows": [], "captures": {}}
-
-
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", default=os.path.join("bench_data", "captures"), metavar="DIR",
@@ -321,7 +313,7 @@ def main() -> int:
     if not milestones or milestones[0] < 1:
         parser.error("--steps must be at least 1")
 
-    results = _load_results()
+    results = load_results(RESULTS)
     for s in SCENES:  # the capture and solve summaries, kept with the rows
         path = os.path.join(args.data, s, "capture.json")
         if os.path.isfile(path):
