@@ -111,8 +111,17 @@ def cmd_extract_mesh(args) -> None:
     splats = _import(args.input, args)
     bpy.context.view_layer.update()
     cameras = _dataset_cameras(args.cameras_from, splats) if args.cameras_from else None
+    bounds = None
+    if args.bounds is not None:  # the file's frame -> world: the box around the corners as the splat object places them
+        import numpy as np
+
+        lo, hi = np.reshape(args.bounds, (2, 3))
+        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        m = np.array(splats.matrix_world, dtype=np.float64)
+        world = corners @ m[:3, :3].T + m[:3, 3]
+        bounds = np.stack([world.min(axis=0), world.max(axis=0)])
     job = workflows.MeshExtraction(splats, method=args.method, cameras=cameras, resolution=args.resolution, cleanup=args.cleanup,
-                                   min_opacity=args.min_opacity, max_points=args.max_points, trim=args.trim)
+                                   min_opacity=args.min_opacity, max_points=args.max_points, trim=args.trim, bounds=bounds)
     try:
         job.compute(ProgressLine("extract mesh"))
     except KeyboardInterrupt:
@@ -306,6 +315,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a dataset folder (COLMAP, NeRF-synthetic or nerfstudio) in the splat file's frame: fusion renders its "
                         "training cameras, Poisson turns each splat's normal toward the nearest (default: 60 views around the splats)")
     p.add_argument("--resolution", type=int, default=128, help="voxels along the longest side of the surface (fusion) or grid (Poisson) (default 128)")
+    p.add_argument("--bounds", type=float, nargs=6, default=None, metavar=("XMIN", "YMIN", "ZMIN", "XMAX", "YMAX", "ZMAX"),
+                   help="fusion: the box to mesh, in the file's frame (default: the surfaces the views share)")
     p.add_argument("--cleanup", type=float, default=0.01, metavar="F",
                    help="drop pieces with fewer faces than this fraction of the largest piece's, 0 keeps all (default 0.01)")
     p.add_argument("--min-opacity", type=float, default=0.01, help="poisson: leave out splats less opaque than this (default 0.01)")

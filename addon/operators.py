@@ -803,6 +803,10 @@ class MLX3D_OT_extract_mesh(_ModalWork, bpy.types.Operator):
                             search=lambda self, context, text: [c.name for c in bpy.data.collections if any(o.type == "CAMERA" for o in c.all_objects)],
                             description="Name of a collection of cameras to render the depth from (fusion; Poisson turns each splat's normal "
                                         "toward the nearest), each at the scene's output resolution; empty: 60 views around the splats")
+    box: StringProperty(name="Box", default="",
+                        search=lambda self, context, text: [o.name for o in bpy.data.objects if o.type in {"MESH", "EMPTY"} and not is_splat_object(o)],
+                        description="Fusion: name of a mesh or empty whose bounds (as placed) are the volume to mesh, e.g. around an object "
+                                    "standing on a floor; empty: the surfaces the views share")
     resolution: IntProperty(name="Resolution", default=128, min=8, max=512,
                             description="Voxels along the longest side of the surface (fusion) or of the grid (Poisson); memory and time grow with its cube")
     cleanup: FloatProperty(name="Cleanup", default=0.01, min=0.0, max=1.0,
@@ -830,10 +834,21 @@ class MLX3D_OT_extract_mesh(_ModalWork, bpy.types.Operator):
             raise workflows.MeshingError(f"the collection '{self.cameras}' holds no camera")
         return cameras
 
+    def _bounds(self, context):
+        """World bounds of the object named by ``box`` (fusion), or None for the default volume."""
+        if not self.box or self.method != "FUSION":
+            return None
+        box = bpy.data.objects.get(self.box)
+        if box is None:
+            raise workflows.MeshingError(f"no object named '{self.box}' (choose a mesh or empty as the box, or none)")
+        if box == context.active_object:
+            raise workflows.MeshingError("the box must be another object than the splat object")
+        return workflows.box_world_bounds(box)
+
     def _job(self, context):
         return workflows.MeshExtraction(context.active_object, method=self.method.lower(), cameras=self._cameras(),
                                         resolution=self.resolution, cleanup=self.cleanup, min_opacity=self.min_opacity,
-                                        max_points=self.max_points, trim=self.trim)
+                                        max_points=self.max_points, trim=self.trim, bounds=self._bounds(context))
 
     def _add(self, context, job):
         try:

@@ -26,6 +26,9 @@ class MLX3D_PG_settings(bpy.types.PropertyGroup):
     mesh_cameras: PointerProperty(name="Cameras", type=bpy.types.Collection, poll=lambda self, coll: any(o.type == "CAMERA" for o in coll.all_objects),
                                   description="A collection of cameras to render the depth from (fusion; Poisson turns each splat's normal toward "
                                               "the nearest), each at the scene's output resolution; none: 60 views around the splats")
+    mesh_box: PointerProperty(name="Box", type=bpy.types.Object, poll=lambda self, obj: obj.type in {"MESH", "EMPTY"},
+                              description="Fusion: a mesh or empty whose bounds (as placed) are the volume to mesh, e.g. around an object "
+                                          "standing on a floor; none: the surfaces the views share")
     mesh_resolution: IntProperty(name="Resolution", default=128, min=8, max=512, description="Voxels along the longest side of the surface (fusion) or of the grid (Poisson)")
     mesh_cleanup: FloatProperty(name="Cleanup", default=0.01, min=0.0, max=1.0, description="Drop pieces with fewer faces than this fraction of the largest piece's (0: keep every piece)")
     mesh_min_opacity: FloatProperty(name="Min opacity", default=0.01, min=0.0, max=1.0, description="Poisson: leave out splats less opaque than this")
@@ -154,12 +157,15 @@ class VIEW3D_PT_mlx3d_splats(_SplatsTab, bpy.types.Panel):
         col.label(text="Surface mesh")
         col.prop(settings, "mesh_method", text="")
         col.prop(settings, "mesh_cameras")
+        if settings.mesh_method == "FUSION":
+            col.prop(settings, "mesh_box")
         for setting in list(fields.values())[1:]:
             col.prop(settings, setting)
         op = col.operator(operators.MLX3D_OT_extract_mesh.bl_idname, icon="OUTLINER_OB_MESH")
         for prop, setting in fields.items():
             setattr(op, prop, getattr(settings, setting))
         op.cameras = settings.mesh_cameras.name if settings.mesh_cameras else ""  # the operator takes the collection's name
+        op.box = settings.mesh_box.name if settings.mesh_box and settings.mesh_method == "FUSION" else ""
         col = _section(layout, "Render (scene camera)", settings, operators.MLX3D_OT_render, "RENDER_STILL",
                        {"antialias": "render_antialias", "filepath": "render_path"})
         op = col.operator(operators.MLX3D_OT_render_animation.bl_idname, icon="RENDER_ANIMATION")

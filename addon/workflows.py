@@ -193,18 +193,33 @@ def world_positions(obj) -> np.ndarray:
     return means @ m[:3, :3].T + m[:3, 3]
 
 
+def box_extent(box, what="crop box"):
+    """(lo (3,), hi (3,)) in ``box``'s own frame: a mesh's bounding box or an empty's cube."""
+    if box.type == "EMPTY":
+        size = box.empty_display_size
+        return np.full(3, -size), np.full(3, size)
+    if box.type == "MESH":
+        corners = np.array([list(c) for c in box.bound_box], dtype=np.float64)
+        return corners.min(axis=0), corners.max(axis=0)
+    raise SplatObjectError(f"{what} '{box.name}' must be a mesh or an empty, not {box.type}")
+
+
+def box_world_bounds(box, what="box") -> np.ndarray:
+    """(2, 3) min and max world corners of the axis-aligned box around ``box`` (``box_extent``) as placed in the
+    scene: exact for a box that is only moved, scaled or turned by multiples of 90 degrees, around it otherwise."""
+    lo, hi = box_extent(box, what)
+    bpy.context.view_layer.update()  # matrix_world is stale until the view layer updates
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    m = object_matrix(box)
+    world = corners @ m[:3, :3].T + m[:3, 3]
+    return np.stack([world.min(axis=0), world.max(axis=0)])
+
+
 def crop_to_box(obj, box, *, keep_inside=True):
     """Keep (or delete) the splats inside the bounds of ``box`` (a mesh's bounding box or an empty's cube)."""
     if box is None or box == obj:
         raise SplatObjectError("choose a mesh or empty (other than the splat object) as the crop box")
-    if box.type == "EMPTY":
-        size = box.empty_display_size
-        lo, hi = np.full(3, -size), np.full(3, size)
-    elif box.type == "MESH":
-        corners = np.array([list(c) for c in box.bound_box], dtype=np.float64)
-        lo, hi = corners.min(axis=0), corners.max(axis=0)
-    else:
-        raise SplatObjectError(f"crop box '{box.name}' must be a mesh or an empty, not {box.type}")
+    lo, hi = box_extent(box)
     local = world_positions(obj)
     to_box = np.linalg.inv(object_matrix(box))
     local = local @ to_box[:3, :3].T + to_box[:3, 3]
@@ -318,7 +333,7 @@ class MeshExtraction(WorkerJob):
     """
 
     def __init__(self, obj, *, method="fusion", cameras=None, resolution=128, cleanup=0.01, min_opacity=0.01,
-                 max_points=200000, trim=None, camera_centres=None, name=None, collection=None, padding=0.1):
+                 max_points=200000, trim=None, camera_centres=None, name=None, collection=None, padding=0.1, bounds=None):
         if obj is None or not is_splat_object(obj):
             what = "no active object" if obj is None else f"'{obj.name}' is not a splat object"
             raise SplatObjectError(f"{what}: choose a point cloud imported as Gaussian splats to extract a mesh from")
@@ -335,6 +350,13 @@ class MeshExtraction(WorkerJob):
             raise MeshingError(f"cleanup must be a fraction in [0, 1], got {cleanup!r}")
         if len(obj.data.points) == 0:
             raise MeshingError(f"'{obj.name}' holds no splats; nothing to mesh")
+        self.bounds = None
+        if bounds is not None:
+            if self.method != "fusion":
+                raise MeshingError("bounds set the volume of fusion; Poisson meshes every splat (crop the splats to a box first)")
+            self.bounds = np.asarray(bounds, dtype=np.float64).reshape(2, 3)
+            if not np.isfinite(self.bounds).all() or (self.bounds[1] <= self.bounds[0]).any():
+                raise MeshingError(f"bounds must be finite world corners, min below max on every axis, got {self.bounds.tolist()}")
         arrays, _ = read_splats(obj)
         self.count = arrays.count
         bpy.context.view_layer.update()  # matrix_world is stale until the view layer updates
@@ -430,7 +452,7 @@ class MeshExtraction(WorkerJob):
         from mlx3d.meshing.fusion import require_surface
 
         require_surface(self.views, what=f"the splats of '{self.source_name}'")
-        surface = fuse_depth_maps(self.views, self.resolution, progress=self._report(progress, len(self.cameras)))
+        surface = fuse_depth_maps(self.views, self.resolution, bounds=self.bounds, progress=self._report(progress, len(self.cameras)))
         to_local = np.linalg.inv(self.matrix)  # world -> the object's frame
         vertices = surface.vertices.astype(np.float64) @ to_local[:3, :3].T + to_local[:3, 3]
         return SurfaceMesh(vertices, surface.faces, surface.colors)
@@ -559,7 +581,7 @@ def new_mesh_object(name, vertices, faces, colors=None, *, collection, parent=No
 
 
 def extract_mesh(obj, *, method="fusion", cameras=None, resolution=128, cleanup=0.01, min_opacity=0.01, max_points=200000,
-                 trim=None, name=None, collection=None, camera_centres=None, progress=None):
+                 trim=None, name=None, collection=None, camera_centres=None, bounds=None, progress=None):
     """A triangle mesh of the splats' surface as a new mesh object under the splat object.
 
     method: ``'fusion'`` (default): depth and colour rendered from ``cameras``
@@ -578,6 +600,10 @@ def extract_mesh(obj, *, method="fusion", cameras=None, resolution=128, cleanup=
     smallest scale). resolution: voxels along the longest side of the seen
     surface (fusion) or of the grid (Poisson). cleanup: pieces with fewer
     faces than this fraction of the largest piece's are dropped (0 keeps all).
+    bounds: fusion only, (2, 3) min and max world corners of the volume to
+    mesh (``box_world_bounds`` of a box object), e.g. around an object on a
+    floor; default: the surfaces the views share
+    (``mlx3d.meshing.fusion.fusion_grid``).
 
     The object, named ``name`` (default "<splat object> mesh") and linked to
     ``collection`` (default the splat object's), is parented to the splat
@@ -590,6 +616,7 @@ def extract_mesh(obj, *, method="fusion", cameras=None, resolution=128, cleanup=
     ``SplatObjectError``) and adds nothing.
     """
     job = MeshExtraction(obj, method=method, cameras=cameras, resolution=resolution, cleanup=cleanup, min_opacity=min_opacity,
-                         max_points=max_points, trim=trim, camera_centres=camera_centres, name=name, collection=collection)
+                         max_points=max_points, trim=trim, camera_centres=camera_centres, name=name, collection=collection,
+                         bounds=bounds)
     job.compute(progress)
     return job.add_object()

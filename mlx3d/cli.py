@@ -397,7 +397,7 @@ def cmd_mesh(args) -> None:
     if args.data:
         from .datasets import load_dataset
 
-        dataset = load_dataset(args.data)
+        dataset = load_dataset(args.data, factor=args.factor)
         cameras = [dataset.frames[i].camera for i in dataset.train]
     if args.method == "fusion":
         where = f"{len(cameras)} training views" if cameras else "60 views around the model"
@@ -582,6 +582,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "poisson: a closed surface through the Gaussians' discs")
     p.add_argument("--data", metavar="DATA_DIR", help="the dataset trained on: fusion renders its training views "
                    "(default: 60 views around the model); poisson turns each normal towards the nearest of its cameras")
+    p.add_argument("--factor", type=float, default=1, help="with --data: its cameras this many times smaller, as "
+                   "trained with `mlx3d train --factor` (fusion renders its depth at that size; default 1)")
     p.add_argument("--resolution", type=int, default=None,
                    help="voxels along the largest side (default 128; poisson's memory grows with its cube)")
     p.add_argument("--voxel-size", type=float, default=None, metavar="LENGTH", help="fusion: voxel size in scene units (instead of --resolution)")

@@ -133,7 +133,7 @@ def test_python_dash_m_runs_the_cli(tmp_path):
     assert missing.returncode == 1 and "missing.ply" in missing.stderr + missing.stdout
 
 
-def test_mesh_writes_a_coloured_mesh_and_refuses_transparent_models(tmp_path, capsys):
+def test_mesh_writes_a_coloured_mesh_and_refuses_transparent_models(tmp_path, capsys, monkeypatch):
     from mlx3d.io.mesh_ply import read_mesh_ply
 
     rng = np.random.default_rng(0)
@@ -164,11 +164,21 @@ def test_mesh_writes_a_coloured_mesh_and_refuses_transparent_models(tmp_path, ca
         mesh = read_mesh_ply(out)
         assert np.abs(np.linalg.norm(mesh.vertices, axis=1) - 1.0).max() < 2 * 2.4 / 48
         np.testing.assert_allclose(mesh.colors.mean(0), [0.9, 0.2, 0.1], atol=2 / 255)
-        if method == "fusion":  # a box given by hand: its part of the ball only (the truncation band beyond it)
+        if method == "fusion":  # a box given by hand: the ball's cap inside it, cut at its wall
             assert main(["mesh", str(tmp_path / "ball.ply"), "--out", str(out), "--resolution", "48",
                          "--data", str(tmp_path / "data"), "--bounds", "-1.2", "-1.2", "0.3", "1.2", "1.2", "1.2"]) == 0
             z = read_mesh_ply(out).vertices[:, 2]
-            assert z.min() > 0.3 - 4 * 2.4 / 48 - 1e-6 and z.max() > 0.95
+            assert z.min() >= 0.3 - 1e-6 and z.min() < 0.3 + 2.4 / 48 and z.max() > 0.95
+            # the cameras read at half size, as trained with --factor 2: the same ball, rendered at 48 x 48
+            widths = []
+            fused_mesh = GaussianModel.fused_mesh
+            monkeypatch.setattr(GaussianModel, "fused_mesh", lambda self, cameras, **kw: (
+                widths.extend(c.width for c in cameras), fused_mesh(self, cameras, **kw))[1])
+            assert main(["mesh", str(tmp_path / "ball.ply"), "--out", str(out), "--resolution", "48",
+                         "--data", str(tmp_path / "data"), "--factor", "2"]) == 0
+            monkeypatch.undo()
+            assert set(widths) == {48}
+            assert np.abs(np.linalg.norm(read_mesh_ply(out).vertices, axis=1) - 1.0).max() < 2 * 2.4 / 48
         m.params["opacities"] = mx.full((6000,), -9.0)
         m.save_ply(tmp_path / "clear.ply")
         assert main(["mesh", str(tmp_path / "clear.ply"), "--out", str(tmp_path / "clear_mesh.ply"), "--method", method,

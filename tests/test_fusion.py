@@ -118,6 +118,19 @@ def test_an_object_on_a_floor_keeps_the_voxels_of_the_object_alone():
     assert np.abs(np.linalg.norm(on_sphere, axis=1) - 1.0).mean() < 0.2 * voxel < 0.015
 
 
+def test_a_box_given_by_hand_is_meshed_as_given():
+    """Bounds set by hand (a box around a statue, above its floor): the surface inside them, cut at the walls,
+    none of the truncation band beyond; the default bounds keep that band, so nothing is cut short."""
+    views = [sphere_view(c) for c in ring_cameras(30, (-60, 60))]
+    box = np.array([[-1.5, -1.5, 0.25], [1.5, 0.4, 1.5]])
+    mesh = fuse_depth_maps(views, resolution=64, bounds=box)
+    assert (mesh.vertices >= box[0] - 1e-6).all() and (mesh.vertices <= box[1] + 1e-6).all()
+    assert mesh.vertices[:, 2].min() < 0.25 + 0.05 and mesh.vertices[:, 1].max() > 0.4 - 0.05  # up to both walls
+    assert np.abs(np.linalg.norm(mesh.vertices, axis=1) - 1.0).max() < 0.05
+    whole = fuse_depth_maps(views, resolution=64)
+    assert whole.vertices[:, 2].min() < -0.95 and whole.vertices[:, 1].max() > 0.95
+
+
 def test_small_pieces_are_dropped_by_their_share_of_the_largest():
     cams = ring_cameras(30, (-60, 60), distance=5.0)
     views = []

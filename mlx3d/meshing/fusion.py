@@ -102,8 +102,8 @@ def reach(cameras) -> tuple:
 
 def fusion_grid(views, resolution: int = 256, voxel_size: float | None = None, truncation: float | None = None,
                 bounds=None) -> FusionGrid:
-    """The lattice for ``views``: over ``bounds`` ((2, 3) min and max corners; default: see below) plus the
-    truncation, with ``voxel_size`` (default the bounds' longest side / ``resolution``) and ``truncation``
+    """The lattice for ``views``: over ``bounds`` ((2, 3) min and max corners, meshed as given: the surface
+    ends at the box's walls) or, by default, over the bounds below plus the truncation, with ``voxel_size`` (default the bounds' longest side / ``resolution``) and ``truncation``
     (default :data:`TRUNCATION_VOXELS` voxels).
 
     Default bounds: the 0.5 to 99.5 percentiles, per axis, of the seen surface points within :func:`reach`
@@ -111,7 +111,8 @@ def fusion_grid(views, resolution: int = 256, voxel_size: float | None = None, t
     (in front of the camera, inside the picture) as frame the most shared point, and at least two. What
     every view of an orbit looks at sets the volume, not the floor or the far walls at the edges of the
     photos, which the voxels would otherwise have to stretch over."""
-    if bounds is None:
+    given = bounds is not None
+    if not given:
         points = [_surface_points(v, stride=4) for v in views]
         points = np.concatenate(points) if points else np.zeros((0, 3))
         if len(points) == 0:
@@ -136,8 +137,9 @@ def fusion_grid(views, resolution: int = 256, voxel_size: float | None = None, t
     trunc = TRUNCATION_VOXELS * voxel if truncation is None else float(truncation)
     if not (math.isfinite(trunc) and trunc >= voxel):
         raise MeshingError(f"truncation must be at least one voxel ({voxel:.4g}), got {truncation!r}")
-    origin = bounds[0] - trunc
-    nodes = np.ceil((bounds[1] + trunc - origin) / voxel).astype(np.int64) + 1
+    margin = 0.0 if given else trunc
+    origin = bounds[0] - margin
+    nodes = np.ceil((bounds[1] + margin - origin) / voxel).astype(np.int64) + 1
     shape = tuple(int(BLOCK * math.ceil(n / BLOCK)) for n in nodes)
     if math.prod(shape) > 2**34:
         raise MeshingError(f"a {shape[0]}x{shape[1]}x{shape[2]} lattice is too large; use a larger voxel_size")
@@ -315,6 +317,10 @@ def fuse_depth_maps(views, resolution: int = 256, voxel_size: float | None = Non
     del tsdf, weight, known
     vertices, faces = marching_tetrahedra(values, 0.0, grid.origin + grid.voxel * first, grid.voxel, mask=mask)
     del values, mask
+    if bounds is not None:  # the lattice's last nodes lie up to a voxel past a box given by hand
+        lo, hi = np.asarray(bounds, dtype=np.float64).reshape(2, 3)
+        inside = np.all((vertices >= lo) & (vertices <= hi), axis=1)
+        vertices, faces, _ = compact_faces(vertices, faces, inside[faces].all(axis=1))
     if len(faces) == 0:
         raise MeshingError("the fused depth maps hold no surface (the views do not agree on any)")
     colors = vertex_colors(vertices, views, grid.truncation) if any(v.color is not None for v in views) else None

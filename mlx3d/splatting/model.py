@@ -613,8 +613,8 @@ class GaussianModel:
         Renders depth (``'median'`` or ``'expected'``, see ``mlx3d.meshing.fusion.depth_views``; pixels
         covered less than ``min_alpha`` are empty) and colour from ``cameras`` (e.g. the training cameras;
         None: 60 views on a spiral around the model, ``mlx3d.meshing.fusion.orbit_cameras``), fuses the depths into a truncated signed
-        distance volume (``mlx3d.meshing.fuse_depth_maps``: over ``bounds``, (2, 3) min and max corners, default
-        the surfaces the views share; ``resolution`` voxels along its longest side unless ``voxel_size``;
+        distance volume (``mlx3d.meshing.fuse_depth_maps``: over ``bounds``, (2, 3) min and max corners, the mesh
+        ending at its walls, default the surfaces the views share; ``resolution`` voxels along its longest side unless ``voxel_size``;
         ``truncation`` in scene units, default 4 voxels) and extracts its
         zero level; space no camera saw stays empty. Pieces of fewer faces than ``cleanup`` times the largest
         piece's are dropped (0 keeps all). In the model's frame and units. ``progress(done, total)`` may raise

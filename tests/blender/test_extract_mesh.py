@@ -263,6 +263,43 @@ def test_fusion_renders_from_a_collection_of_cameras(extension, clean_scene, tmp
     assert mesh_arrays(other)[0][:, 2].min() > -0.1
 
 
+def test_fusion_meshes_what_a_box_holds(extension, clean_scene, tmp_path):
+    """A box object (an object standing on a floor: the box is drawn around it) sets the volume: the mesh is the
+    sphere's part inside the box as placed, a cube turned a quarter about Z, moved and scaled, cut at its walls."""
+    from mlx3d.meshing import MeshingError
+
+    workflows = extension.addon.workflows
+    splats = import_splats(tmp_path / "sphere.ply", transform=False)
+    camera_collection("top views", top_eyes(3))
+    bpy.ops.mesh.primitive_cube_add(size=2.0, location=(0.0, 0.4, 0.7), rotation=(0.0, 0.0, np.pi / 2))
+    box = bpy.context.active_object
+    box.name, box.scale = "box", (0.5, 2.0, 0.5)  # world: x in [-2, 2], y in [-0.1, 0.9], z in [0.2, 1.2]
+    bpy.context.view_layer.objects.active = splats
+    assert bpy.ops.mlx3d.extract_mesh(cameras="top views", box="box", resolution=32, cleanup=0.0) == {"FINISHED"}
+    vertices, faces = mesh_arrays(bpy.context.scene.objects["sphere mesh"])  # the splat object's frame is the world's
+    assert len(faces) > 100 and np.abs(np.linalg.norm(vertices, axis=1) - 1.0).max() < 2 * 2.0 / 32
+    lo, hi = np.array([-2.0, -0.1, 0.2]), np.array([2.0, 0.9, 1.2])
+    assert (vertices >= lo - 1e-5).all() and (vertices <= hi + 1e-5).all()
+    assert vertices[:, 1].min() < -0.1 + 0.07 and vertices[:, 1].max() > 0.9 - 0.07 and vertices[:, 2].min() < 0.2 + 0.07
+    np.testing.assert_allclose(workflows.box_world_bounds(box), [lo, hi], atol=1e-6)
+    # A box name that is not there, the splat object as its own box, a box with Poisson: refused, nothing added.
+    bpy.data.meshes.remove(bpy.context.scene.objects["sphere mesh"].data, do_unlink=True)
+    bpy.context.view_layer.objects.active = splats
+    before = scene_state()
+    with pytest.raises(RuntimeError, match="no object named 'nowhere'"):
+        bpy.ops.mlx3d.extract_mesh(cameras="top views", box="nowhere", resolution=16)
+    with pytest.raises(RuntimeError, match="the box must be another object than the splat object"):
+        bpy.ops.mlx3d.extract_mesh(cameras="top views", box="sphere", resolution=16)
+    with pytest.raises(MeshingError, match="bounds set the volume of fusion"):
+        workflows.extract_mesh(splats, method="poisson", bounds=[lo, hi])
+    with pytest.raises(MeshingError, match="min below max"):
+        workflows.extract_mesh(splats, bounds=[hi, lo])
+    box.location = (0.0, 0.4, 5.0)  # the box holds no surface now
+    with pytest.raises(RuntimeError, match="inside the bounds"):
+        bpy.ops.mlx3d.extract_mesh(cameras="top views", box="box", resolution=16)
+    assert scene_state() == before
+
+
 def test_bad_cameras_are_refused_and_add_nothing(extension, clean_scene, tmp_path):
     from mlx3d.meshing import MeshingError
 
@@ -543,18 +580,19 @@ def test_panel_mesh_section_passes_its_settings(extension, clean_scene):
     assert settings.mesh_method == "FUSION" and settings.mesh_cameras is None and settings.mesh_resolution == 128
     settings.mesh_resolution, settings.mesh_cleanup = 200, 0.05
     props, op = draw()
-    assert props == ["mesh_method", "mesh_cameras", "mesh_resolution", "mesh_cleanup"]  # no Poisson-only setting
-    assert (op.method, op.cameras, op.resolution, op.cleanup) == ("FUSION", "", 200, pytest.approx(0.05))
+    assert props == ["mesh_method", "mesh_cameras", "mesh_box", "mesh_resolution", "mesh_cleanup"]  # no Poisson-only setting
+    assert (op.method, op.cameras, op.box, op.resolution, op.cleanup) == ("FUSION", "", "", 200, pytest.approx(0.05))
     assert not hasattr(op, "min_opacity")
     settings.mesh_cameras = camera_collection("shots", [(0.0, -4.0, 1.0)])
+    settings.mesh_box = bpy.data.objects.new("crate", bpy.data.meshes.new("crate"))
     props, op = draw()
-    assert op.cameras == "shots"
+    assert (op.cameras, op.box) == ("shots", "crate")
 
     settings.mesh_method = "POISSON"
     settings.mesh_min_opacity, settings.mesh_max_points, settings.mesh_trim = 0.2, 5000, 1.5
     props, op = draw()
     assert props == ["mesh_method", "mesh_cameras", "mesh_resolution", "mesh_cleanup", "mesh_min_opacity", "mesh_max_points", "mesh_trim"]
-    assert (op.method, op.cameras, op.resolution, op.cleanup) == ("POISSON", "shots", 200, pytest.approx(0.05))
+    assert (op.method, op.cameras, op.box, op.resolution, op.cleanup) == ("POISSON", "shots", "", 200, pytest.approx(0.05))
     assert (op.min_opacity, op.max_points, op.trim) == (pytest.approx(0.2), 5000, pytest.approx(1.5))
 
 
@@ -638,6 +676,12 @@ def test_headless_mesh_alias_renders_the_dataset_cameras(extension, extension_en
     assert vertices[:, 1].min() > -0.1, "nothing of the half the cameras do not see"
     top = fibonacci_directions(400)[:, [0, 2, 1]]
     assert largest_gap(vertices, top[top[:, 1] > 0.3]) < 0.1
+    # --bounds in the file's frame: the cap above y = 0.5 only
+    result = _run(extension, extension_env, "mesh", tmp_path / "sphere.ply", "--out", tmp_path / "cap.ply", "--cameras-from", tmp_path / "data",
+                  "--axis", "Y_UP", "--resolution", "32", "--cleanup", "0", "--bounds", -2, 0.5, -2, 2, 2, 2)
+    assert result.returncode == 0, result.stderr[-3000:]
+    cap = np.asarray(read_mesh_ply(tmp_path / "cap.ply").vertices, np.float64)
+    assert cap[:, 1].min() >= 0.5 - 1e-5 and cap[:, 1].min() < 0.5 + 2.0 / 32 and cap[:, 1].max() > 0.95
 
     bad = _run(extension, extension_env, "mesh", tmp_path / "sphere.ply", "--out", tmp_path / "bad.ply", "--cameras-from", tmp_path / "none")
     assert bad.returncode == 1 and "blender_splat mesh: error:" in bad.stderr and not (tmp_path / "bad.ply").exists()
