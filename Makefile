@@ -51,15 +51,19 @@ BUILD_DIR ?= build/$(if $(filter .venv,$(VENV)),,$(VENV:.%=%)/){wheel_tag}
 #                    as Apple clang builds it on macOS, and the kernel tests against it
 #   test-macos-compile .venv-macos   the module's C++ sources cross-compiled for macOS arm64 (zig c++,
 #                    the macOS MLX wheel's headers): tests/test_macos_compile.py
+#   test-kernel-platforms .venv      the kernel library (mlx3d/csrc/kernels) built for linux-x64, windows-x64,
+#                    linux-arm64 and macos-arm64 (zig), the Windows DLL run under wine and the arm64 library under
+#                    qemu-user against the Linux build, the macOS one inspected: tests/test_kernel_platforms.py
 #   test-docs       .venv            the documentation site built strictly (`make docs`); the pages'
 #                    examples run in the suites above (tests/test_docs.py)
 # Each entry prints its wall time. PYTEST_ARGS adds pytest options (e.g. -x, -k).
-TEST_MATRIX := test-py311 test-py313 test-blender45 test-blender53 test-pip-editable test-pure test-mac-path test-clang test-macos-compile test-docs
+TEST_MATRIX := test-py311 test-py313 test-blender45 test-blender53 test-pip-editable test-pure test-mac-path test-clang test-macos-compile \
+	test-kernel-platforms test-docs
 BPY_LTS := 4.5.15
 BPY_LATEST := 5.3.0
 PYTEST_ARGS ?=
 
-.PHONY: demo test $(TEST_MATRIX) test-venv peer-tools bench bench-scenes report install extension docs
+.PHONY: demo test $(TEST_MATRIX) test-venv peer-tools cross-tools kernels bench bench-scenes report install extension docs
 
 # `make demo` runs the Blender extension as a user would: it builds the extension
 # zip for this machine and the venv's Python (build/demo-extension/), installs and
@@ -165,6 +169,26 @@ test-macos-compile:
 		$(MACOS_VENV)/bin/python -c "import glob, sys, zipfile; z = zipfile.ZipFile(glob.glob(sys.argv[1] + '/mlx_metal-*.whl')[0]); z.extractall(sys.argv[1], [n for n in z.namelist() if n.startswith('mlx/include/')])" $(MACOS_MLX) && \
 		rm -f $(MACOS_MLX)/mlx_metal-*.whl; }
 	MLX3D_MACOS_MLX_INCLUDE=$(MACOS_MLX)/mlx/include $(MACOS_VENV)/bin/python -m pytest -q $(PYTEST_ARGS) tests/test_macos_compile.py
+
+# The kernel library for every platform (mlx3d/csrc/kernels/build.py) and where each runs here: zig
+# (ziglang, pinned above) in .venv, and, as root on Debian/Ubuntu, wine (64-bit), qemu-user and the arm64 C
+# library from apt; without them those tests skip with the reason.
+CROSS_PACKAGES := wine64 qemu-user-static libc6-arm64-cross
+test-kernel-platforms: $(STAMP) cross-tools
+	MLX3D_KERNEL_PLATFORMS=1 $(PY) -m pytest -q $(PYTEST_ARGS) tests/test_kernel_platforms.py
+
+cross-tools: $(STAMP)
+	@$(PY) -c "import importlib.metadata as m, sys; sys.exit(m.version('ziglang') != '$(ZIGLANG)')" 2>/dev/null || \
+		$(PY) -m pip install -q ziglang==$(ZIGLANG)
+	@missing=$$(for p in $(CROSS_PACKAGES); do dpkg -s $$p > /dev/null 2>&1 || echo $$p; done); \
+	if [ -n "$$missing" ] && command -v apt-get > /dev/null && [ "$$(id -u)" = 0 ]; then \
+		echo "make: installing $$missing (apt-get)"; \
+		apt-get update -q > /dev/null && DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends $$missing > /dev/null; \
+	elif [ -n "$$missing" ]; then echo "make: $$missing not installed; the kernel tests that need them will skip" >&2; fi
+
+# The kernel library for this machine (Linux x86-64) where mlx3d.kernel_library finds it: mlx3d/_kernels/.
+kernels: $(STAMP)
+	$(PY) mlx3d/csrc/kernels/build.py linux-x64 --out mlx3d/_kernels
 
 # The tests of one venv (VENV, PYTHON, BPY as above; TESTS: pytest paths).
 TESTS ?=

@@ -1,0 +1,137 @@
+/* Test driver of the kernel library: runs the calls a file describes and writes what they returned.
+ *
+ *     kernel_driver LIBRARY CALLS OUT
+ *
+ * Loads LIBRARY as a program would (LoadLibrary / dlopen; the library's own exports only), so the same
+ * calls can be run by each platform's build where it runs: natively, under wine or under qemu-user
+ * (tests/test_kernel_platforms.py writes CALLS and compares the OUT files).
+ *
+ * CALLS: "MLX3DK1\n", then records until the end of the file, each: u32 name length, the function's name,
+ * u32 argument count, then per argument one kind byte and a u64: 'i' an integer argument (the u64, as
+ * two's complement), 'f' an input float32 array of that many elements (which follow), 'o' an output float32
+ * array of that many elements. OUT: per record, i32 the return value, u32 length and text of
+ * mlx3d_last_error(), then per 'o' argument u64 count and its floats. Little-endian throughout.
+ */
+#include <stdint.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+
+#if defined(_WIN32)
+#include <windows.h>
+typedef HMODULE library_t;
+static library_t open_library(const char* path) { return LoadLibraryA(path); }
+static void* symbol(library_t lib, const char* name) { return (void*)GetProcAddress(lib, name); }
+#else
+#include <dlfcn.h>
+typedef void* library_t;
+static library_t open_library(const char* path) { return dlopen(path, RTLD_NOW | RTLD_LOCAL); }
+static void* symbol(library_t lib, const char* name) { return dlsym(lib, name); }
+#endif
+
+#define MAX_ARGS 32
+
+typedef struct {
+  char kind;
+  uint64_t count;
+  float* data;
+} Arg;
+
+static void fail(const char* what) {
+  fprintf(stderr, "kernel_driver: %s\n", what);
+  exit(2);
+}
+
+static void read_exact(FILE* f, void* p, size_t n) {
+  if (n && fread(p, 1, n, f) != n) fail("truncated calls file");
+}
+
+static void write_exact(FILE* f, const void* p, size_t n) {
+  if (n && fwrite(p, 1, n, f) != n) fail("cannot write the output file");
+}
+
+typedef int (*sh_forward_t)(const float*, int64_t, const float*, int64_t, const float*, const float*, int64_t, int, int, float*);
+typedef int (*sh_backward_t)(const float*, int64_t, const float*, int64_t, const float*, const float*, int64_t, int, const float*, int,
+                             float*, float*, float*);
+
+#define I(k) ((int64_t)args[k].count)
+#define F(k) (args[k].data)
+
+/* Whether the arguments' kinds spell `want` ("fio...", one letter per argument). */
+static int kinds_are(const Arg* args, uint32_t nargs, const char* want) {
+  if (strlen(want) != nargs) return 0;
+  for (uint32_t k = 0; k < nargs; ++k)
+    if (args[k].kind != want[k]) return 0;
+  return 1;
+}
+
+/* Calls `name` with `args` (their kinds checked against its signature); the function's return value. */
+static int call(library_t lib, const char* name, Arg* args, uint32_t nargs) {
+  void* fn = symbol(lib, name);
+  if (!fn) fail("the library has no function of that name");
+  if (!strcmp(name, "mlx3d_sh_forward")) {
+    if (!kinds_are(args, nargs, "fififfiiio")) fail("mlx3d_sh_forward: arguments of the wrong kinds");
+    return ((sh_forward_t)fn)(F(0), I(1), F(2), I(3), F(4), F(5), I(6), (int)I(7), (int)I(8), F(9));
+  }
+  if (!strcmp(name, "mlx3d_sh_backward")) {
+    if (!kinds_are(args, nargs, "fififfiifiooo")) fail("mlx3d_sh_backward: arguments of the wrong kinds");
+    return ((sh_backward_t)fn)(F(0), I(1), F(2), I(3), F(4), F(5), I(6), (int)I(7), F(8), (int)I(9), F(10), F(11), F(12));
+  }
+  fail("no call of that function is known to the driver");
+  return -1;
+}
+
+int main(int argc, char** argv) {
+  if (argc != 4) fail("usage: kernel_driver LIBRARY CALLS OUT");
+  library_t lib = open_library(argv[1]);
+  if (!lib) fail("cannot load the library");
+  const char* (*last_error)(void) = (const char* (*)(void))symbol(lib, "mlx3d_last_error");
+  if (!last_error) fail("the library has no mlx3d_last_error");
+  FILE* in = fopen(argv[2], "rb");
+  FILE* out = fopen(argv[3], "wb");
+  if (!in || !out) fail("cannot open the calls or the output file");
+  char magic[8];
+  read_exact(in, magic, 8);
+  if (memcmp(magic, "MLX3DK1\n", 8)) fail("not a calls file");
+  uint32_t length;
+  while (fread(&length, 4, 1, in) == 1) {
+    char name[256];
+    if (length >= sizeof name) fail("function name too long");
+    read_exact(in, name, length);
+    name[length] = 0;
+    uint32_t nargs;
+    read_exact(in, &nargs, 4);
+    if (nargs > MAX_ARGS) fail("too many arguments");
+    Arg args[MAX_ARGS];
+    for (uint32_t k = 0; k < nargs; ++k) {
+      read_exact(in, &args[k].kind, 1);
+      read_exact(in, &args[k].count, 8);
+      args[k].data = NULL;
+      if (args[k].kind == 'f' || args[k].kind == 'o') {
+        args[k].data = (float*)malloc(args[k].count ? args[k].count * sizeof(float) : 1);
+        if (!args[k].data) fail("out of memory");
+        if (args[k].kind == 'f') read_exact(in, args[k].data, args[k].count * sizeof(float));
+        else memset(args[k].data, 0xff, args[k].count * sizeof(float));  /* NaN: what the kernel leaves unwritten shows */
+        if (!args[k].count) { free(args[k].data); args[k].data = NULL; }
+      } else if (args[k].kind != 'i') {
+        fail("unknown argument kind");
+      }
+    }
+    const int32_t rc = call(lib, name, args, nargs);
+    const char* error = last_error();
+    const uint32_t error_length = (uint32_t)strlen(error);
+    write_exact(out, &rc, 4);
+    write_exact(out, &error_length, 4);
+    write_exact(out, error, error_length);
+    for (uint32_t k = 0; k < nargs; ++k) {
+      if (args[k].kind == 'o') {
+        write_exact(out, &args[k].count, 8);
+        write_exact(out, args[k].data, args[k].count * sizeof(float));
+      }
+      free(args[k].data);
+    }
+  }
+  fclose(in);
+  if (fclose(out)) fail("cannot write the output file");
+  return 0;
+}

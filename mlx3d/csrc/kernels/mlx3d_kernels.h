@@ -1,0 +1,56 @@
+/* The CPU kernels of mlx3d as a C library: plain functions on raw pointers, sizes and a thread count.
+ *
+ * One implementation of each kernel, used by the library (libmlx3d_kernels: .so, .dll, .dylib; loaded by
+ * mlx3d/kernel_library.py through ctypes on every platform) and by the MLX primitives of mlx3d._core.
+ * Conventions, for every function:
+ *   - arrays are row-major, contiguous and float32 unless named otherwise; shapes are given in the comments
+ *     as (N, 3) etc., with N the count argument;
+ *   - outputs are written in full (no need to clear them first) and never alias an input;
+ *   - threads: worker threads to use, 0 for every hardware thread; results do not depend on it;
+ *   - the return value is 0 on success; otherwise the message is in mlx3d_last_error() (this thread's last
+ *     failure), and the outputs hold nothing of value.
+ * MLX3D_KERNELS_ABI changes whenever a signature or a meaning here does; mlx3d_kernels_abi() returns the
+ * value the library was built with, so a loader refuses a library of another version.
+ */
+#ifndef MLX3D_KERNELS_H
+#define MLX3D_KERNELS_H
+
+#include <stdint.h>
+
+#define MLX3D_KERNELS_ABI 1
+
+#if defined(_WIN32)
+#define MLX3D_API __declspec(dllexport)
+#else
+#define MLX3D_API __attribute__((visibility("default")))
+#endif
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+MLX3D_API int mlx3d_kernels_abi(void);
+/* What the library was built for and with, one line ("x86_64-linux gcc 12.2 lanes 8 ...", for logs). */
+MLX3D_API const char* mlx3d_kernels_build(void);
+/* The message of this thread's last failed call ("" when none failed). */
+MLX3D_API const char* mlx3d_last_error(void);
+
+/* View-dependent colour of N Gaussians from spherical harmonics (sh_math.h):
+ *   rgb (N, 3) = max(0.5 + sum_k Y_k(normalise(means - centre)) sh[:, k, :], 0) for k < (degree + 1)^2.
+ * The K = k0 + k1 coefficients come as two blocks read as their concatenation along K: block0 (N, k0, 3)
+ * and block1 (N, k1, 3) (a model's sh_dc and sh_rest; k1 = 0 and block1 NULL for one array). degree 0..3,
+ * K >= (degree + 1)^2. means (N, 3), centre (3,). */
+MLX3D_API int mlx3d_sh_forward(const float* block0, int64_t k0, const float* block1, int64_t k1, const float* means,
+                               const float* centre, int64_t n, int degree, int threads, float* rgb);
+/* Its gradient: from dL/drgb cot (N, 3), dL/dblock0 (N, k0, 3), dL/dblock1 (N, k1, 3) (NULL when k1 = 0; zero
+ * past the degree) and dL/dmeans d_means (N, 3). Each Gaussian is computed from its own inputs only, so the
+ * results are bitwise the same for any thread count and for one array or two blocks. */
+MLX3D_API int mlx3d_sh_backward(const float* block0, int64_t k0, const float* block1, int64_t k1, const float* means,
+                                const float* centre, int64_t n, int degree, const float* cot, int threads,
+                                float* d_block0, float* d_block1, float* d_means);
+
+#ifdef __cplusplus
+}
+#endif
+
+#endif /* MLX3D_KERNELS_H */
