@@ -47,7 +47,7 @@ def module_sources() -> list[str]:
     text = (ROOT / "CMakeLists.txt").read_text(encoding="utf-8")
     block = re.search(r"nanobind_add_module\(\s*_core(.*?)\)", text, re.S)
     assert block, "CMakeLists.txt: no nanobind_add_module(_core ...)"
-    sources = re.findall(r"mlx3d/csrc/\w+\.cpp", block.group(1))
+    sources = re.findall(r"mlx3d/csrc/[\w/]+\.cpp", block.group(1))
     assert sources, "CMakeLists.txt: nanobind_add_module(_core ...) names no sources"
     return sources
 

@@ -90,7 +90,7 @@ int32_t clamp_tile(double v, int32_t hi) {
 mx::array to_mlx(HugePageArray<int32_t> data, int64_t n) {
   if (n == 0) return mx::array({}, mx::int32);
   int32_t* raw = data.release();
-  return mx::array(raw, mx::Shape{static_cast<int32_t>(n)}, mx::int32, [](void* p) { std::free(p); });
+  return mx::array(raw, mx::Shape{static_cast<int32_t>(n)}, mx::int32, [](void* p) { aligned_free(p); });
 }
 
 // The tile rectangle of Gaussian i (empty when culled).

@@ -1,12 +1,9 @@
-// View-dependent colour from spherical harmonics as CPU MLX primitives, threaded over Gaussians.
+// View-dependent colour from spherical harmonics as CPU MLX primitives: the kernel library's
+// mlx3d_sh_forward / mlx3d_sh_backward (kernels/sh.cpp, mlx3d_kernels.h) run on MLX arrays.
 //
-// rgb (N,3) = max(0.5 + Σ_k Y_k(normalise(means - centre)) sh[:, k, :], 0) for the first
-// (degree+1)² of the K coefficients (the math, shared with Metal: sh_math.h). The coefficients come
-// as one (N,K,3) array or as two blocks (N,K0,3), (N,K1,3) with K = K0 + K1 (a model's sh_dc and
-// sh_rest, read in place instead of concatenated). The backward primitive gives dL/d(each block)
-// (zero past the degree) and dL/dmeans (N,3); the centre gets a zero gradient. Every Gaussian is
-// computed by one thread from its own inputs only, so results are bitwise identical for any thread
-// count, and for one array or two blocks.
+// The coefficients come as one (N,K,3) array or as two blocks (N,K0,3), (N,K1,3) with K = K0 + K1 (a
+// model's sh_dc and sh_rest, read in place instead of concatenated). The backward primitive gives
+// dL/d(each block) (zero past the degree) and dL/dmeans (N,3); the centre gets a zero gradient.
 #include <nanobind/nanobind.h>
 #include <nanobind/stl/vector.h>
 
@@ -22,6 +19,7 @@
 #include "mlx/array.h"
 #include "mlx/ops.h"
 #include "mlx/primitives.h"
+#include "kernels/mlx3d_kernels.h"
 #include "primitive_util.h"
 #include "sh_math.h"
 
@@ -32,145 +30,24 @@ using namespace nb::literals;
 namespace mlx3d {
 namespace {
 
-constexpr int kBlock = 4096;  // at least this many Gaussians per thread
+// The kernel's C entry points (kernels/sh.cpp) report failures by return code and message.
+void check_call(int rc) {
+  if (rc != 0) throw std::runtime_error(mlx3d_last_error());
+}
 
-struct ShInputs {
-  const float* block[2];  // (N, K0, 3) and (N, K1, 3); block[1] unused when K1 = 0
-  int kb[2];              // K0, K1
-  const float* means;     // (N, 3)
-  const float* centre;    // (3,)
-  int64_t n;
-  int k;                  // K0 + K1
-  int degree;
+// The 1 or 2 coefficient blocks of `inputs` (then means, centre): their pointers and coefficient counts.
+struct ShBlocks {
+  const float* block[2] = {nullptr, nullptr};
+  int64_t k[2] = {0, 0};
 };
 
-// inputs: the 1 or 2 coefficient blocks, means, centre (then anything else, unread).
-ShInputs sh_inputs(const std::vector<mx::array>& inputs, int blocks, int degree) {
-  ShInputs in{};
-  for (int b = 0; b < blocks; ++b) {
-    in.block[b] = inputs[b].data<float>();
-    in.kb[b] = inputs[b].shape(1);
+ShBlocks sh_blocks(const std::vector<mx::array>& inputs, int blocks) {
+  ShBlocks b;
+  for (int i = 0; i < blocks; ++i) {
+    b.block[i] = inputs[i].data<float>();
+    b.k[i] = inputs[i].shape(1);
   }
-  in.means = inputs[blocks].data<float>();
-  in.centre = inputs[blocks + 1].data<float>();
-  in.n = inputs[0].shape(0);
-  in.k = in.kb[0] + in.kb[1];
-  in.degree = degree;
-  return in;
-}
-
-// Up to kLanes consecutive Gaussians [i0, i0 + count), lanes past `count` repeating the last one, with
-// their directions and first `bases` coefficients gathered lane-wise (coef[3k + c][lane]).
-struct Batch {
-  int count;
-  alignas(32) float x[kLanes], y[kLanes], z[kLanes], inv_norm[kLanes];  // the directions (ShDir), lane-wise
-  alignas(32) float coef[3 * SH_MAX_BASES][kLanes];
-};
-
-MLX3D_LANES_INLINE void gather(const ShInputs& in, int64_t i0, int64_t hi, int bases, Batch& b) {
-  b.count = static_cast<int>(std::min<int64_t>(kLanes, hi - i0));
-  for (int j = 0; j < kLanes; ++j) {
-    const int64_t i = i0 + std::min(j, b.count - 1);
-    const float* m = in.means + 3 * i;
-    const ShDir u = sh_direction(m[0] - in.centre[0], m[1] - in.centre[1], m[2] - in.centre[2]);
-    b.x[j] = u.x;
-    b.y[j] = u.y;
-    b.z[j] = u.z;
-    b.inv_norm[j] = u.inv_norm;
-    int q0 = 0;  // first float of the block in coef
-    for (int blk = 0; blk < 2 && q0 < 3 * bases; ++blk) {
-      const float* c = in.block[blk] + i * 3 * in.kb[blk];
-      const int floats = std::min(3 * in.kb[blk], 3 * bases - q0);
-      for (int q = 0; q < floats; ++q) b.coef[q0 + q][j] = c[q];
-      q0 += 3 * in.kb[blk];
-    }
-  }
-}
-
-// Unclamped colours of a batch seen along the basis y (lane-wise), summed in k order.
-MLX3D_LANES_INLINE void colour_of(const Batch& batch, int bases, const Lanes* y, Lanes* colour) {
-  for (int ch = 0; ch < 3; ++ch) {
-    Lanes acc = y[0] * lanes_at(batch.coef[ch]);
-    for (int k = 1; k < bases; ++k) acc = acc + y[k] * lanes_at(batch.coef[3 * k + ch]);
-    colour[ch] = acc + 0.5f;
-  }
-}
-
-MLX3D_AVX2_CLONES void forward_range(const ShInputs& in, int64_t lo, int64_t hi, float* rgb) {
-  const int bases = sh_num_bases(in.degree);
-  Batch batch;
-  for (int64_t i0 = lo; i0 < hi; i0 += kLanes) {
-    gather(in, i0, hi, bases, batch);
-    const ShBasisOf<Lanes> b = sh_basis(in.degree, lanes_at(batch.x), lanes_at(batch.y), lanes_at(batch.z));
-    Lanes colour[3];
-    colour_of(batch, bases, b.y, colour);
-    alignas(32) float c[3][kLanes];
-    for (int ch = 0; ch < 3; ++ch) put_lanes(c[ch], colour[ch]);
-    for (int j = 0; j < batch.count; ++j)
-      for (int ch = 0; ch < 3; ++ch) rgb[3 * (i0 + j) + ch] = c[ch][j] > 0.0f ? c[ch][j] : 0.0f;
-  }
-}
-
-// d_block: dL/d(each block), laid out as the inputs.
-MLX3D_AVX2_CLONES void backward_range(const ShInputs& in, const float* cot, float* const d_block[2], float* d_means, int64_t lo,
-                                      int64_t hi) {
-  const int bases = sh_num_bases(in.degree);
-  Batch batch;
-  alignas(32) float ds[3 * SH_MAX_BASES][kLanes];  // dL/dsh[k][c] of each lane, for k < bases
-  for (int64_t i0 = lo; i0 < hi; i0 += kLanes) {
-    gather(in, i0, hi, bases, batch);
-    const ShBasisOf<Lanes> b = sh_basis(in.degree, lanes_at(batch.x), lanes_at(batch.y), lanes_at(batch.z));
-    Lanes colour[3];
-    colour_of(batch, bases, b.y, colour);
-    // dL/dcolour: the cotangent where the colour is above the clamp, else 0.
-    alignas(32) float c[3][kLanes], g[3][kLanes];
-    for (int ch = 0; ch < 3; ++ch) put_lanes(c[ch], colour[ch]);
-    for (int j = 0; j < kLanes; ++j)
-      for (int ch = 0; ch < 3; ++ch) g[ch][j] = c[ch][j] > 0.0f ? cot[3 * (i0 + std::min(j, batch.count - 1)) + ch] : 0.0f;
-    const Lanes gl[3] = {lanes_at(g[0]), lanes_at(g[1]), lanes_at(g[2])};
-    Lanes gx = {}, gy = {}, gz = {};
-    for (int k = 0; k < bases; ++k) {
-      Lanes along = {};  // Σ_c g_c sh[k][c]
-      for (int ch = 0; ch < 3; ++ch) {
-        put_lanes(ds[3 * k + ch], gl[ch] * b.y[k]);
-        along = along + gl[ch] * lanes_at(batch.coef[3 * k + ch]);
-      }
-      if (k > 0) {
-        gx = gx + along * b.dx[k];
-        gy = gy + along * b.dy[k];
-        gz = gz + along * b.dz[k];
-      }
-    }
-    alignas(32) float gxs[kLanes], gys[kLanes], gzs[kLanes];
-    put_lanes(gxs, gx);
-    put_lanes(gys, gy);
-    put_lanes(gzs, gz);
-    for (int j = 0; j < batch.count; ++j) {
-      const int64_t i = i0 + j;
-      int q0 = 0;  // first float of the block in ds
-      for (int blk = 0; blk < 2; ++blk) {
-        float* d = d_block[blk] + i * 3 * in.kb[blk];
-        const int floats = 3 * in.kb[blk], live = std::max(0, std::min(floats, 3 * bases - q0));
-        for (int q = 0; q < live; ++q) d[q] = ds[q0 + q][j];
-        for (int q = live; q < floats; ++q) d[q] = 0.0f;
-        q0 += floats;
-      }
-      const ShDir u{batch.x[j], batch.y[j], batch.z[j], batch.inv_norm[j]};
-      const ShVec3 dm = sh_direction_vjp(u, gxs[j], gys[j], gzs[j]);
-      d_means[3 * i] = dm.x;
-      d_means[3 * i + 1] = dm.y;
-      d_means[3 * i + 2] = dm.z;
-    }
-  }
-}
-
-void run_forward(ShInputs in, int num_threads, float* rgb) {
-  parallel_blocks(in.n, num_threads, kBlock, [in, rgb](int64_t lo, int64_t hi) { forward_range(in, lo, hi, rgb); });
-}
-
-void run_backward(ShInputs in, const float* cot, int num_threads, float* const d_block[2], float* d_means) {
-  parallel_blocks(in.n, num_threads, kBlock,
-                  [in, cot, d_block, d_means](int64_t lo, int64_t hi) { backward_range(in, cot, d_block, d_means, lo, hi); });
+  return b;
 }
 
 class ShColorBase : public CpuPrimitive {
@@ -195,11 +72,17 @@ class ShColorBackward : public ShColorBase {
   // inputs: the coefficient blocks, means, centre, dL/drgb (N,3); outputs: dL/d(each block), dL/dmeans
   void eval_cpu(const std::vector<mx::array>& inputs, std::vector<mx::array>& outputs) override {
     auto& encoder = prepare_outputs(*this, inputs, outputs);
-    ShInputs in = sh_inputs(inputs, blocks_, degree_);
+    const ShBlocks b = sh_blocks(inputs, blocks_);
+    const float* means = inputs[blocks_].data<float>();
+    const float* centre = inputs[blocks_ + 1].data<float>();
     const float* cot = inputs[blocks_ + 2].data<float>();
-    float* d_block[2] = {outputs[0].data<float>(), blocks_ > 1 ? outputs[1].data<float>() : nullptr};
+    float* d_block1 = blocks_ > 1 ? outputs[1].data<float>() : nullptr;
+    float* d_block0 = outputs[0].data<float>();
     float* d_means = outputs[blocks_].data<float>();
-    encoder.dispatch([in, cot, d_block, d_means, threads = num_threads_]() { run_backward(in, cot, threads, d_block, d_means); });
+    const int64_t n = inputs[0].shape(0);
+    encoder.dispatch([=, degree = degree_, threads = num_threads_]() {
+      check_call(mlx3d_sh_backward(b.block[0], b.k[0], b.block[1], b.k[1], means, centre, n, degree, cot, threads, d_block0, d_block1, d_means));
+    });
   }
 
   std::vector<mx::array> vjp(const std::vector<mx::array>&, const std::vector<mx::array>&, const std::vector<int>&,
@@ -223,9 +106,14 @@ class ShColorForward : public ShColorBase {
   // inputs: the coefficient blocks, means, centre
   void eval_cpu(const std::vector<mx::array>& inputs, std::vector<mx::array>& outputs) override {
     auto& encoder = prepare_outputs(*this, inputs, outputs);
-    ShInputs in = sh_inputs(inputs, blocks_, degree_);
+    const ShBlocks b = sh_blocks(inputs, blocks_);
+    const float* means = inputs[blocks_].data<float>();
+    const float* centre = inputs[blocks_ + 1].data<float>();
     float* rgb = outputs[0].data<float>();
-    encoder.dispatch([in, rgb, threads = num_threads_]() { run_forward(in, threads, rgb); });
+    const int64_t n = inputs[0].shape(0);
+    encoder.dispatch([=, degree = degree_, threads = num_threads_]() {
+      check_call(mlx3d_sh_forward(b.block[0], b.k[0], b.block[1], b.k[1], means, centre, n, degree, threads, rgb));
+    });
   }
 
   std::vector<mx::array> vjp(const std::vector<mx::array>& primals, const std::vector<mx::array>& cotangents,

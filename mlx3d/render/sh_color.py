@@ -1,8 +1,9 @@
 """The renderer's colour stage: RGB (N,3) = max(eval_sh(degree, sh, means - centre), 0), one entry per backend.
 
 'cpu' runs ``mlx3d._core.sh_colors``, a threaded C++ MLX primitive with a
-hand-written backward pass (math in ``mlx3d/csrc/sh_math.h``, the header a
-Metal kernel would share); 'metal' and 'reference' run the pure-MLX
+hand-written backward pass (the kernel library's ``mlx3d_sh_forward`` and
+``mlx3d_sh_backward``, ``mlx3d/csrc/kernels/sh.cpp``; math in
+``mlx3d/csrc/sh_math.h``, the header a Metal kernel would share); 'metal' and 'reference' run the pure-MLX
 reference, :func:`mlx3d.splatting.sh.eval_sh`, which is also the test oracle.
 Differentiable with respect to ``sh`` and ``means`` on every backend.
 
