@@ -31,7 +31,8 @@ from pathlib import Path
 import mlx.core as mx
 import numpy as np
 
-__all__ = ["available", "failure", "library", "library_path", "build_info", "sh_colors", "ABI", "PATH_ENV"]
+__all__ = ["available", "failure", "library", "library_path", "build_info", "sh_colors", "add_screen_statistics", "ABI",
+           "PATH_ENV"]
 
 #: mlx3d_kernels.h's MLX3D_KERNELS_ABI this module is written for.
 ABI = 1
@@ -45,14 +46,19 @@ _lib: ctypes.CDLL | None = None
 _failure: str | None = None
 
 _f32p = ctypes.POINTER(ctypes.c_float)
+_f64p = ctypes.POINTER(ctypes.c_double)
+_i32p = ctypes.POINTER(ctypes.c_int32)
+_u8p = ctypes.POINTER(ctypes.c_uint8)
 _i64 = ctypes.c_int64
 _int = ctypes.c_int
+_f64 = ctypes.c_double
 _SIGNATURES = {
     "mlx3d_kernels_abi": ([], _int),
     "mlx3d_kernels_build": ([], ctypes.c_char_p),
     "mlx3d_last_error": ([], ctypes.c_char_p),
     "mlx3d_sh_forward": ([_f32p, _i64, _f32p, _i64, _f32p, _f32p, _i64, _int, _int, _f32p], _int),
     "mlx3d_sh_backward": ([_f32p, _i64, _f32p, _i64, _f32p, _f32p, _i64, _int, _f32p, _int, _f32p, _f32p, _f32p], _int),
+    "mlx3d_add_screen_statistics": ([_u8p, _f32p, _i32p, _i64, _f64, _f64, _f64p, _f64p, _f64p, _int], _int),
 }
 
 
@@ -138,8 +144,11 @@ def _output(shape: tuple) -> tuple[mx.array, np.ndarray]:
     return out, view
 
 
+_POINTERS = {np.dtype(np.float32): _f32p, np.dtype(np.float64): _f64p, np.dtype(np.int32): _i32p, np.dtype(np.bool_): _u8p}
+
+
 def _ptr(a: np.ndarray | None):
-    return None if a is None or a.size == 0 else a.ctypes.data_as(_f32p)
+    return None if a is None or a.size == 0 else a.ctypes.data_as(_POINTERS[a.dtype])
 
 
 def _call(name: str, *args) -> None:
@@ -191,3 +200,30 @@ def sh_colors(sh: list, means: mx.array, centre: mx.array, degree: int, num_thre
     if int(num_threads) < 0:
         raise ValueError(f"num_threads must be >= 0 (0 = all cores), got {num_threads}")
     return _sh_function(int(degree), int(num_threads))(block0, block1, means, centre)
+
+
+# ------------------------------------------------------------------ densification statistics
+def _numpy_in(a, dtype, name: str, size: int) -> np.ndarray:
+    """``a`` (numpy or MLX) as a C-contiguous ``dtype`` array of ``size`` elements (read in place when it is one)."""
+    a = np.ascontiguousarray(np.asarray(mx.stop_gradient(a) if isinstance(a, mx.array) else a), dtype=dtype)
+    if a.size != size:
+        raise ValueError(f"{name} must hold {size} elements, got {a.size}")
+    return a
+
+
+def add_screen_statistics(visible, grad2d, radii, sx: float, sy: float, grad_accum: np.ndarray, grad_count: np.ndarray,
+                          max_radii: np.ndarray, num_threads: int = 0) -> None:
+    """Adds one view to the float64 (N,) densification statistics in place: grad_accum += |grad2d * (sx, sy)| where
+    visible (bool (N,)), grad_count += visible, max_radii = max(max_radii, radii (int32 (N,))); grad2d float32 (N, 2)
+    (``mlx3d._core.add_screen_statistics``'s contract)."""
+    stats = (grad_accum, grad_count, max_radii)
+    n = grad_accum.shape[0] if isinstance(grad_accum, np.ndarray) else -1
+    for name, a in zip(("grad_accum", "grad_count", "max_radii"), stats):
+        if not (isinstance(a, np.ndarray) and a.dtype == np.float64 and a.shape == (n,) and a.flags.c_contiguous and a.flags.writeable):
+            raise ValueError(f"{name} must be a writable C-contiguous float64 (N,) numpy array, as the other statistics")
+    if int(num_threads) < 0:
+        raise ValueError(f"num_threads must be >= 0 (0 = all cores), got {num_threads}")
+    vis, g, r = (_numpy_in(visible, np.bool_, "visible", n), _numpy_in(grad2d, np.float32, "grad2d", 2 * n),
+                 _numpy_in(radii, np.int32, "radii", n))
+    _call("mlx3d_add_screen_statistics", _ptr(vis), _ptr(g), _ptr(r), n, float(sx), float(sy), *(_ptr(a) for a in stats),
+          int(num_threads))

@@ -2,7 +2,8 @@
 
 - linux-x64 (the host compiler, as mlx3d._core), loaded in this process through ``mlx3d.kernel_library``:
   bit for bit ``mlx3d._core``'s results, and within float32 rounding of the pure MLX reference
-  (``mlx3d.splatting.sh.eval_sh``), forward and backward, at several thread counts.
+  (``mlx3d.splatting.sh.eval_sh``), forward and backward, at several thread counts; the densification
+  statistics bit for bit numpy's float64 expression.
 - windows-x64 (a DLL, zig's x86_64-windows-gnu) under wine and linux-arm64 (zig's aarch64-linux-gnu,
   glibc 2.17) under qemu-user: the test driver (driver.c, built for the same platform) runs the same
   calls as the linux-x64 build's driver, and every output must equal that build's to the bit (the kernels
@@ -12,7 +13,8 @@
   library that exports the API's functions. It never runs here.
 
 The inputs are a real trained splat file (tests/data/formats/opensplat_500.ply, 500 Gaussians of SH degree
-3: its coefficients and centres) seen from a camera beside it, with fixed pseudo-random output gradients.
+3: its coefficients and centres) seen from a camera beside it, with fixed pseudo-random output gradients, and
+for the densification statistics pseudo-random visibility, pixel gradients and radii of its 500 Gaussians.
 The builds go to build/kernels-test/ (zig caches its own work, so a rebuild takes seconds). Skipped, with
 the reason, where zig (``ziglang``), wine or qemu-user with the arm64 C library are missing: ``make
 test-kernel-platforms`` installs them.
@@ -110,15 +112,34 @@ def sh_calls():
     return calls
 
 
+def statistics_calls():
+    """Densification statistics of the same file's Gaussians: a view's visibility, pixel gradients (exact zeros
+    among them) and radii added to running sums that hold a NaN radius, at several thread counts."""
+    n = len(sh_inputs()[2])
+    rng = np.random.default_rng(3)
+    visible = rng.random(n) < 0.7
+    grad2d = (rng.normal(size=(n, 2)) * 1e-4 * (rng.random((n, 1)) < 0.9)).astype(np.float32)
+    radii = rng.integers(0, 40, n).astype(np.int32)
+    start = [rng.random(n) * 1e-3, rng.integers(0, 5, n).astype(np.float64), rng.integers(0, 30, n).astype(np.float64)]
+    start[2][::17] = np.nan
+    return [("mlx3d_add_screen_statistics", [("u", visible), ("f", grad2d), ("n", radii), ("i", n), ("x", 0.5 * 648), ("x", 0.5 * 420),
+                                             ("D", start[0]), ("D", start[1]), ("D", start[2]), ("i", threads)]) for threads in THREADS]
+
+
+ARRAY_TYPES = {"f": "<f4", "u": "u1", "n": "<i4", "D": "<f8"}
+
+
 def write_calls(path: Path, calls) -> None:
     with open(path, "wb") as f:
         f.write(b"MLX3DK1\n")
         for name, args in calls:
             f.write(struct.pack("<I", len(name)) + name.encode() + struct.pack("<I", len(args)))
             for kind, value in args:
-                if kind == "f":
-                    data = np.ascontiguousarray(value, dtype="<f4").ravel()
-                    f.write(b"f" + struct.pack("<Q", data.size) + data.tobytes())
+                if kind in ARRAY_TYPES:
+                    data = np.ascontiguousarray(value, dtype=ARRAY_TYPES[kind]).ravel()
+                    f.write(kind.encode() + struct.pack("<Q", data.size) + data.tobytes())
+                elif kind == "x":
+                    f.write(b"x" + struct.pack("<d", float(value)))
                 else:
                     f.write(kind.encode() + struct.pack("<Q", int(value) & 0xFFFFFFFFFFFFFFFF))
 
@@ -133,10 +154,11 @@ def read_results(path: Path, calls) -> list:
         at += length
         outs = []
         for kind, _ in args:
-            if kind == "o":
+            if kind in ("o", "D"):
                 (count,) = struct.unpack_from("<Q", data, at)
-                outs.append(np.frombuffer(data, "<f4", count, at + 8).copy())
-                at += 8 + 4 * count
+                dtype = np.dtype("<f4" if kind == "o" else "<f8")
+                outs.append(np.frombuffer(data, dtype, count, at + 8).copy())
+                at += 8 + dtype.itemsize * count
         results.append((rc, error, outs))
     assert at == len(data), "the driver wrote more than the calls asked for"
     return results
@@ -163,7 +185,7 @@ def run_driver(folder: Path, platform: str, runner: list[str], calls, tmp_path: 
 
 def check_same(results, reference, calls):
     for (name, args), (rc, error, outs), (rc0, error0, outs0) in zip(calls, results, reference):
-        where = f"{name} degree {args[7][1]} threads {args[8][1] if name.endswith('forward') else args[9][1]}"
+        where = f"{name} with {[a[1] for a in args if a[0] in 'ix']}"
         assert (rc, error) == (rc0, error0), where
         for out, out0 in zip(outs, outs0):
             assert out.tobytes() == out0.tobytes(), f"{where}: {np.abs(out - out0).max()} from the linux-x64 build"
@@ -226,16 +248,51 @@ def test_bad_calls_are_errors_that_name_the_problem(builds, monkeypatch):
     assert not kernel_library.available() and "nowhere.so does not exist" in kernel_library.failure()
 
 
+def numpy_statistics(visible, grad2d, radii, sx, sy, accum, count, max_radii):
+    """mlx3d.training.statistics' float64 expression, in numpy: the statistics after adding the view."""
+    g = grad2d.astype(np.float64) * np.array([sx, sy])
+    return (accum + np.where(visible, np.sqrt(g[:, 0] ** 2 + g[:, 1] ** 2), 0.0), count + visible,
+            np.maximum(max_radii, radii.astype(np.float64)))
+
+
+def test_statistics_in_process_are_numpys_and_cores(builds, monkeypatch):
+    from mlx3d import kernel_library, native
+
+    folder = builds("linux-x64")
+    monkeypatch.setenv(kernel_library.PATH_ENV, str(folder / kernel_build.library_name("linux-x64")))
+    monkeypatch.setattr(kernel_library, "_lib", None)
+    monkeypatch.setattr(kernel_library, "_failure", None)
+    for _, args in statistics_calls():
+        visible, grad2d, radii = (a[1] for a in args[:3])
+        sx, sy, threads = args[4][1], args[5][1], args[9][1]
+        stats = [a[1].copy() for a in args[6:9]]
+        kernel_library.add_screen_statistics(visible, grad2d, radii, sx, sy, *stats, threads)
+        for got, expected in zip(stats, numpy_statistics(visible, grad2d, radii, sx, sy, *(a[1] for a in args[6:9]))):
+            assert got.tobytes() == expected.tobytes()
+        if native.available():
+            core = [a[1].copy() for a in args[6:9]]
+            native.core().add_screen_statistics(visible, grad2d, radii, sx, sy, *core, threads)
+            assert all(c.tobytes() == g.tobytes() for c, g in zip(core, stats))
+    with pytest.raises(ValueError, match="grad_count must be a writable C-contiguous float64"):
+        kernel_library.add_screen_statistics(visible, grad2d, radii, sx, sy, stats[0], stats[1].astype(np.float32), stats[2])
+    with pytest.raises(ValueError, match="radii must hold 500 elements, got 499"):
+        kernel_library.add_screen_statistics(visible, grad2d, radii[1:], sx, sy, *stats)
+
+
 @pytest.mark.parametrize("platform", ["windows-x64", "linux-arm64"])
 def test_other_platforms_builds_give_the_linux_builds_results(builds, platform, tmp_path):
     runner = wine_command() if platform == "windows-x64" else qemu_command()
     if runner is None:
         pytest.skip(f"{'wine' if platform == 'windows-x64' else 'qemu-user and the arm64 C library'} not installed "
                     "(`make test-kernel-platforms` installs them)")
-    calls = sh_calls()
+    calls = sh_calls() + statistics_calls()
     reference = run_driver(builds("linux-x64"), "linux-x64", [], calls, tmp_path)
-    assert reference[-1][0] == 1 and "degree must be 0..3, got 4" in reference[-1][1]
-    assert all(rc == 0 and np.isfinite(np.concatenate(outs)).all() for rc, _, outs in reference[:-1])
+    bad = len(sh_calls()) - 1
+    assert reference[bad][0] == 1 and "degree must be 0..3, got 4" in reference[bad][1]
+    assert all(rc == 0 and np.isfinite(np.concatenate(outs)).all() for rc, _, outs in reference[:bad])
+    for (_, args), (rc, _, outs) in zip(calls[bad + 1:], reference[bad + 1:]):  # the statistics: numpy's float64 expression
+        expected = numpy_statistics(*(a[1] for a in args[:3]), args[4][1], args[5][1], *(a[1] for a in args[6:9]))
+        assert rc == 0 and all(o.tobytes() == e.tobytes() for o, e in zip(outs, expected))
     check_same(run_driver(builds(platform), platform, runner, calls, tmp_path), reference, calls)
 
 

@@ -1,21 +1,14 @@
 // The densification statistics of one view, added in place (mlx3d.training.trainer's
-// add_screen_statistics), threaded over the Gaussians:
-//
-//   grad_accum[i] += visible[i] ? |(gx sx, gy sy)| : 0;  grad_count[i] += visible[i];
-//   max_radii[i] = max(max_radii[i], radii[i])
-//
-// with (gx, gy) = dL/d(means2d) in pixels and (sx, sy) = (W/2, H/2), which takes it to NDC units (as
-// 3DGS's threshold expects). In float64, each operation rounded as numpy's whole-array expression it
-// replaces (no contraction: CMakeLists.txt), so the statistics, and the densification that reads them,
-// are the same bits; max as np.maximum (NaN wins).
+// add_screen_statistics): the kernel library's mlx3d_add_screen_statistics (kernels/statistics.cpp) on
+// the statistics' numpy arrays.
 #include <nanobind/nanobind.h>
 #include <nanobind/ndarray.h>
 
-#include <cmath>
 #include <cstdint>
+#include <stdexcept>
 
 #include "bindings.h"
-#include "primitive_util.h"
+#include "kernels/mlx3d_kernels.h"
 
 namespace nb = nanobind;
 using namespace nb::literals;
@@ -33,21 +26,14 @@ void add_screen_statistics(const In<bool>& visible, const In<float>& grad2d, con
   if (grad2d.size() != size_t(2 * n) || radii.size() != size_t(n) || grad_accum.shape(0) != size_t(n) ||
       grad_count.shape(0) != size_t(n) || max_radii.shape(0) != size_t(n))
     throw nb::value_error("add_screen_statistics: visible (N,), grad2d (N,2), radii (N,) and the three (N,) statistics must agree on N");
-  const bool* vis = visible.data();
-  const float* g = grad2d.data();
-  const int32_t* r = radii.data();
-  double *acc = grad_accum.data(), *count = grad_count.data(), *radius = max_radii.data();
-  nb::gil_scoped_release release;
-  parallel_blocks(n, num_threads, 16384, [=](int64_t lo, int64_t hi) {
-    for (int64_t i = lo; i < hi; ++i) {
-      const double x = double(g[2 * i]) * sx, y = double(g[2 * i + 1]) * sy;
-      const double xx = x * x, yy = y * y;
-      acc[i] += vis[i] ? std::sqrt(xx + yy) : 0.0;
-      count[i] += vis[i] ? 1.0 : 0.0;
-      const double a = radius[i], b = r[i];
-      radius[i] = (a >= b || std::isnan(a)) ? a : b;
-    }
-  });
+  static_assert(sizeof(bool) == 1, "visible is read as one byte per Gaussian");
+  int rc;
+  {
+    nb::gil_scoped_release release;
+    rc = mlx3d_add_screen_statistics(reinterpret_cast<const uint8_t*>(visible.data()), grad2d.data(), radii.data(), n, sx, sy,
+                                     grad_accum.data(), grad_count.data(), max_radii.data(), num_threads);
+  }
+  if (rc != 0) throw std::runtime_error(mlx3d_last_error());
 }
 
 }  // namespace

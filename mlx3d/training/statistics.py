@@ -5,9 +5,9 @@ gradient times (W/2, H/2)) where visible, ``grad_count`` += 1 where visible,
 ``max_radii`` = max(max_radii, radius in pixels). The statistics are read at
 densification and checkpoint time as float64 numpy arrays (N,).
 
-Backend 'cpu' adds each view in place with a threaded C++ pass
-(``mlx3d/csrc/screen_statistics.cpp``), bit for bit numpy's float64
-expression. Every other backend adds each view as MLX operations on the
+Backend 'cpu' adds each view in place with a threaded C++ pass (the kernel
+library's ``mlx3d_add_screen_statistics``, ``mlx3d/csrc/kernels/statistics.cpp``),
+bit for bit numpy's float64 expression. Every other backend adds each view as MLX operations on the
 device, into float32 sums that are folded into the float64 arrays when they
 are read, so a training step reads nothing back to the host for them (a fold
 sums at most one densification interval of views in float32, about 1e-6 of

@@ -31,7 +31,7 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[2]
-SOURCES = ["api.cpp", "sh.cpp"]
+SOURCES = ["api.cpp", "sh.cpp", "statistics.cpp"]
 FLAGS = ["-std=c++17", "-O3", "-ffp-contract=off", "-fno-math-errno", "-fvisibility=hidden", "-Wall", "-Wno-psabi"]
 #: zig target triples; None: the host compiler.
 TARGETS = {"linux-x64": None, "windows-x64": "x86_64-windows-gnu", "linux-arm64": "aarch64-linux-gnu.2.17",

@@ -8,9 +8,10 @@
  *
  * CALLS: "MLX3DK1\n", then records until the end of the file, each: u32 name length, the function's name,
  * u32 argument count, then per argument one kind byte and a u64: 'i' an integer argument (the u64, as
- * two's complement), 'f' an input float32 array of that many elements (which follow), 'o' an output float32
- * array of that many elements. OUT: per record, i32 the return value, u32 length and text of
- * mlx3d_last_error(), then per 'o' argument u64 count and its floats. Little-endian throughout.
+ * two's complement), 'x' a double argument (the u64's bits), or the element count of an array whose elements
+ * follow for inputs: 'f' float32, 'u' uint8, 'n' int32, 'D' float64 updated in place; 'o' a float32 output
+ * array (nothing follows). OUT: per record, i32 the return value, u32 length and text of
+ * mlx3d_last_error(), then per 'o' and 'D' argument u64 count and its elements. Little-endian throughout.
  */
 #include <stdint.h>
 #include <stdio.h>
@@ -31,15 +32,27 @@ static void* symbol(library_t lib, const char* name) { return dlsym(lib, name); 
 
 #define MAX_ARGS 32
 
-typedef struct {
-  char kind;
-  uint64_t count;
-  float* data;
-} Arg;
-
 static void fail(const char* what) {
   fprintf(stderr, "kernel_driver: %s\n", what);
   exit(2);
+}
+
+typedef struct {
+  char kind;
+  uint64_t count;
+  void* data;
+} Arg;
+
+/* Bytes per element of an array argument's kind; 0 for a scalar. */
+static size_t element_size(char kind) {
+  switch (kind) {
+    case 'f': case 'o': case 'n': return 4;
+    case 'u': return 1;
+    case 'D': return 8;
+    case 'i': case 'x': return 0;
+    default: fail("unknown argument kind");
+  }
+  return 0;
 }
 
 static void read_exact(FILE* f, void* p, size_t n) {
@@ -53,9 +66,17 @@ static void write_exact(FILE* f, const void* p, size_t n) {
 typedef int (*sh_forward_t)(const float*, int64_t, const float*, int64_t, const float*, const float*, int64_t, int, int, float*);
 typedef int (*sh_backward_t)(const float*, int64_t, const float*, int64_t, const float*, const float*, int64_t, int, const float*, int,
                              float*, float*, float*);
+typedef int (*statistics_t)(const uint8_t*, const float*, const int32_t*, int64_t, double, double, double*, double*, double*, int);
 
 #define I(k) ((int64_t)args[k].count)
-#define F(k) (args[k].data)
+#define F(k) ((float*)args[k].data)
+#define X(k) (as_double(args[k].count))
+
+static double as_double(uint64_t bits) {
+  double d;
+  memcpy(&d, &bits, sizeof d);
+  return d;
+}
 
 /* Whether the arguments' kinds spell `want` ("fio...", one letter per argument). */
 static int kinds_are(const Arg* args, uint32_t nargs, const char* want) {
@@ -76,6 +97,11 @@ static int call(library_t lib, const char* name, Arg* args, uint32_t nargs) {
   if (!strcmp(name, "mlx3d_sh_backward")) {
     if (!kinds_are(args, nargs, "fififfiifiooo")) fail("mlx3d_sh_backward: arguments of the wrong kinds");
     return ((sh_backward_t)fn)(F(0), I(1), F(2), I(3), F(4), F(5), I(6), (int)I(7), F(8), (int)I(9), F(10), F(11), F(12));
+  }
+  if (!strcmp(name, "mlx3d_add_screen_statistics")) {
+    if (!kinds_are(args, nargs, "ufnixxDDDi")) fail("mlx3d_add_screen_statistics: arguments of the wrong kinds");
+    return ((statistics_t)fn)((const uint8_t*)args[0].data, F(1), (const int32_t*)args[2].data, I(3), X(4), X(5), (double*)args[6].data,
+                              (double*)args[7].data, (double*)args[8].data, (int)I(9));
   }
   fail("no call of that function is known to the driver");
   return -1;
@@ -107,14 +133,12 @@ int main(int argc, char** argv) {
       read_exact(in, &args[k].kind, 1);
       read_exact(in, &args[k].count, 8);
       args[k].data = NULL;
-      if (args[k].kind == 'f' || args[k].kind == 'o') {
-        args[k].data = (float*)malloc(args[k].count ? args[k].count * sizeof(float) : 1);
+      const size_t size = element_size(args[k].kind);
+      if (size && args[k].count) {
+        args[k].data = malloc(args[k].count * size);
         if (!args[k].data) fail("out of memory");
-        if (args[k].kind == 'f') read_exact(in, args[k].data, args[k].count * sizeof(float));
-        else memset(args[k].data, 0xff, args[k].count * sizeof(float));  /* NaN: what the kernel leaves unwritten shows */
-        if (!args[k].count) { free(args[k].data); args[k].data = NULL; }
-      } else if (args[k].kind != 'i') {
-        fail("unknown argument kind");
+        if (args[k].kind == 'o') memset(args[k].data, 0xff, args[k].count * size);  /* NaN: what the kernel leaves unwritten shows */
+        else read_exact(in, args[k].data, args[k].count * size);
       }
     }
     const int32_t rc = call(lib, name, args, nargs);
@@ -124,9 +148,9 @@ int main(int argc, char** argv) {
     write_exact(out, &error_length, 4);
     write_exact(out, error, error_length);
     for (uint32_t k = 0; k < nargs; ++k) {
-      if (args[k].kind == 'o') {
+      if (args[k].kind == 'o' || args[k].kind == 'D') {
         write_exact(out, &args[k].count, 8);
-        write_exact(out, args[k].data, args[k].count * sizeof(float));
+        write_exact(out, args[k].data, args[k].count * element_size(args[k].kind));
       }
       free(args[k].data);
     }

@@ -3,9 +3,10 @@
  * One implementation of each kernel, used by the library (libmlx3d_kernels: .so, .dll, .dylib; loaded by
  * mlx3d/kernel_library.py through ctypes on every platform) and by the MLX primitives of mlx3d._core.
  * Conventions, for every function:
- *   - arrays are row-major, contiguous and float32 unless named otherwise; shapes are given in the comments
- *     as (N, 3) etc., with N the count argument;
- *   - outputs are written in full (no need to clear them first) and never alias an input;
+ *   - arrays are row-major, contiguous and of the C type in the signature (float: float32, uint8_t: a bool per
+ *     byte, 0 or 1); shapes are given in the comments as (N, 3) etc., with N the count argument;
+ *   - outputs are written in full (no need to clear them first) and never alias an input, except arrays the
+ *     comment says are updated in place;
  *   - threads: worker threads to use, 0 for every hardware thread; results do not depend on it;
  *   - the return value is 0 on success; otherwise the message is in mlx3d_last_error() (this thread's last
  *     failure), and the outputs hold nothing of value.
@@ -48,6 +49,13 @@ MLX3D_API int mlx3d_sh_forward(const float* block0, int64_t k0, const float* blo
 MLX3D_API int mlx3d_sh_backward(const float* block0, int64_t k0, const float* block1, int64_t k1, const float* means,
                                 const float* centre, int64_t n, int degree, const float* cot, int threads,
                                 float* d_block0, float* d_block1, float* d_means);
+
+/* Adds one view to the densification statistics, float64 (N,) each, in place: where visible (N,),
+ * grad_accum += |(grad2d[:, 0] sx, grad2d[:, 1] sy)| (grad2d (N, 2): dL/d(means2d) in pixels; sx, sy = W/2,
+ * H/2) and grad_count += 1; max_radii = max(max_radii, radii) (radii int32 (N,); NaN stays). Each operation is
+ * rounded as numpy's float64 expression (mlx3d.training.statistics). */
+MLX3D_API int mlx3d_add_screen_statistics(const uint8_t* visible, const float* grad2d, const int32_t* radii, int64_t n, double sx,
+                                          double sy, double* grad_accum, double* grad_count, double* max_radii, int threads);
 
 #ifdef __cplusplus
 }
