@@ -132,14 +132,14 @@ def _host(a: mx.array, name: str, shape: tuple) -> np.ndarray:
         want = "(" + ", ".join("any" if s is None else str(s) for s in shape) + ("," if len(shape) == 1 else "") + ")"
         raise ValueError(f"{name} must have shape {want}, got {tuple(a.shape)}")
     mx.eval(a)
-    return np.ascontiguousarray(np.array(a, copy=False))
+    return np.ascontiguousarray(np.asarray(a))
 
 
 def _output(shape: tuple) -> tuple[mx.array, np.ndarray]:
     """A fresh float32 MLX array of ``shape`` and a writable numpy view of its memory, for a kernel to fill."""
     out = mx.zeros(shape, dtype=mx.float32)
     mx.eval(out)
-    view = np.array(out, copy=False)
+    view = np.asarray(out)
     assert view.flags.c_contiguous and view.flags.writeable
     return out, view
 

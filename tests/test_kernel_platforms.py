@@ -236,6 +236,9 @@ def test_bad_calls_are_errors_that_name_the_problem(builds, monkeypatch):
     monkeypatch.setattr(kernel_library, "_lib", None)
     monkeypatch.setattr(kernel_library, "_failure", None)
     dc, rest, means, centre, _ = (mx.array(a) for a in sh_inputs())
+    strided = mx.concatenate([means, means], axis=1)[:, :3]  # rows 6 floats apart: read through one copy
+    assert np.array_equal(np.array(kernel_library.sh_colors([dc, rest], strided, centre, 3)),
+                          np.array(kernel_library.sh_colors([dc, rest], means, centre, 3)))
     with pytest.raises(RuntimeError, match="mlx3d_sh_forward: degree 3 needs at least 16 coefficients, got 1"):
         kernel_library.sh_colors([dc], means, centre, 3)
     with pytest.raises(TypeError, match="means must be float32, got mlx.core.float16"):

@@ -79,8 +79,8 @@ def build(platform: str, out: Path, driver: bool = False, cxx: str | None = None
         link += [f"-Wl,-install_name,@rpath/{lib.name}"]
     elif platform != "windows-x64":
         link += ["-fPIC", "-pthread"]
-    if platform == "linux-x64":
-        link += ["-static-libstdc++", "-static-libgcc"] if "clang" not in cxx_cmd[0] else []
+    if platform == "linux-x64":  # the C++ runtime inside: the library needs only glibc, whatever the host ships
+        link += ["-static-libstdc++", "-static-libgcc"]
     cmd = [*cxx_cmd, *FLAGS, *link, *(str(HERE / s) for s in SOURCES), "-o", str(lib)]
     subprocess.run(cmd, check=True)
     if driver:
