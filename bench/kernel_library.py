@@ -20,6 +20,7 @@ Median milliseconds of ``--repeats`` runs after a warm-up, and the ratios to
 from __future__ import annotations
 
 import argparse
+import datetime
 import os
 import subprocess
 import sys
@@ -124,8 +125,16 @@ def main() -> int:
     load.stop.set()
     load.join()
     summary = load.summary()
-    text = (f"{machine_line()}; library {kernel_library.build_info()}; 1-minute load average median "
-            f"{summary.get('median', float('nan')):.1f}\n\n{table(rows, args.gaussians)}")
+    text = "\n".join([
+        "# The kernel library against `_core`", "",
+        "The same C++ kernels called two ways: through `mlx3d.kernel_library` (ctypes: the C library, which is what "
+        "Windows and Linux arm64 can load) and inside `mlx3d._core` (MLX primitives over the same functions), with the "
+        "pure MLX expressions beside them (`python bench/kernel_library.py`; what each case runs is in its docstring). "
+        "The library's extra time is its boundary: the inputs checked and evaluated, the outputs allocated as MLX arrays "
+        "and filled with zeros first (MLX's Python API has no uninitialised allocation).", "",
+        f"Measured {datetime.date.today().isoformat()} on {machine_line()}; library {kernel_library.build_info()}; "
+        f"1-minute load average during the run: median {summary.get('median', float('nan')):.1f} on {os.cpu_count()} cores.", "",
+        table(rows, args.gaussians), ""])
     emit(text, args.markdown)
     return 0
 

@@ -73,7 +73,7 @@ def builds():
             if kernel_build.TARGETS[platform] is not None and not have_zig():
                 pytest.skip("zig is not installed (pip install ziglang; `make test-kernel-platforms` does)")
             made[platform] = OUT / platform
-            kernel_build.build(platform, made[platform], driver=True)
+            kernel_build.build(platform, made[platform], driver=platform != "macos-arm64")  # nothing runs a macOS driver
         return made[platform]
 
     return get
