@@ -113,13 +113,7 @@ def cmd_extract_mesh(args) -> None:
     cameras = _dataset_cameras(args.cameras_from, splats) if args.cameras_from else None
     bounds = None
     if args.bounds is not None:  # the file's frame -> world: the box around the corners as the splat object places them
-        import numpy as np
-
-        lo, hi = np.reshape(args.bounds, (2, 3))
-        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-        m = np.array(splats.matrix_world, dtype=np.float64)
-        world = corners @ m[:3, :3].T + m[:3, 3]
-        bounds = np.stack([world.min(axis=0), world.max(axis=0)])
+        bounds = workflows.placed_bounds(args.bounds[:3], args.bounds[3:], workflows.object_matrix(splats))
     job = workflows.MeshExtraction(splats, method=args.method, cameras=cameras, resolution=args.resolution, cleanup=args.cleanup,
                                    min_opacity=args.min_opacity, max_points=args.max_points, trim=args.trim, bounds=bounds)
     try:

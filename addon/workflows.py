@@ -204,15 +204,20 @@ def box_extent(box, what="crop box"):
     raise SplatObjectError(f"{what} '{box.name}' must be a mesh or an empty, not {box.type}")
 
 
+def placed_bounds(lo, hi, matrix) -> np.ndarray:
+    """(2, 3) min and max corners of the axis-aligned box around the box ``lo``..``hi`` (3,) moved by the affine
+    ``matrix`` (4, 4): exact for a matrix that only moves, scales or turns by multiples of 90 degrees."""
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])], dtype=np.float64)
+    placed = corners @ np.asarray(matrix)[:3, :3].T + np.asarray(matrix)[:3, 3]
+    return np.stack([placed.min(axis=0), placed.max(axis=0)])
+
+
 def box_world_bounds(box, what="box") -> np.ndarray:
-    """(2, 3) min and max world corners of the axis-aligned box around ``box`` (``box_extent``) as placed in the
-    scene: exact for a box that is only moved, scaled or turned by multiples of 90 degrees, around it otherwise."""
+    """(2, 3) min and max world corners of the box object ``box`` (``box_extent``) as placed in the scene
+    (``placed_bounds``)."""
     lo, hi = box_extent(box, what)
     bpy.context.view_layer.update()  # matrix_world is stale until the view layer updates
-    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-    m = object_matrix(box)
-    world = corners @ m[:3, :3].T + m[:3, 3]
-    return np.stack([world.min(axis=0), world.max(axis=0)])
+    return placed_bounds(lo, hi, object_matrix(box))
 
 
 def crop_to_box(obj, box, *, keep_inside=True):
@@ -354,7 +359,10 @@ class MeshExtraction(WorkerJob):
         if bounds is not None:
             if self.method != "fusion":
                 raise MeshingError("bounds set the volume of fusion; Poisson meshes every splat (crop the splats to a box first)")
-            self.bounds = np.asarray(bounds, dtype=np.float64).reshape(2, 3)
+            self.bounds = np.asarray(bounds, dtype=np.float64)
+            if self.bounds.size != 6:
+                raise MeshingError(f"bounds must be two world corners (min, max) of 3 coordinates each, got {self.bounds.size} numbers")
+            self.bounds = self.bounds.reshape(2, 3)
             if not np.isfinite(self.bounds).all() or (self.bounds[1] <= self.bounds[0]).any():
                 raise MeshingError(f"bounds must be finite world corners, min below max on every axis, got {self.bounds.tolist()}")
         arrays, _ = read_splats(obj)
