@@ -2,7 +2,7 @@
 
 The pure-numpy counterpart of the compiled ``mlx3d._core.KDTree``, with the
 same methods and results: squared distances are evaluated in float64 from the
-float32 coordinates as ``(dx*dx + dy*dy) + dz*dz`` (as ``csrc/knn.cpp``
+float32 coordinates as ``(dx*dx + dy*dy) + dz*dz`` (as ``csrc/kernels/knn.cpp``
 does), each query keeps the k smallest (distance, index) pairs, skipping its
 own point (``self_index``, -1 = none), and the mean sums the k distances in
 float64 in increasing order.

@@ -31,8 +31,8 @@ from pathlib import Path
 import mlx.core as mx
 import numpy as np
 
-__all__ = ["available", "failure", "library", "library_path", "build_info", "sh_colors", "add_screen_statistics", "ABI",
-           "PATH_ENV"]
+__all__ = ["available", "failure", "library", "library_path", "build_info", "sh_colors", "add_screen_statistics", "KDTree",
+           "ABI", "PATH_ENV"]
 
 #: mlx3d_kernels.h's MLX3D_KERNELS_ABI this module is written for.
 ABI = 1
@@ -59,6 +59,11 @@ _SIGNATURES = {
     "mlx3d_sh_forward": ([_f32p, _i64, _f32p, _i64, _f32p, _f32p, _i64, _int, _int, _f32p], _int),
     "mlx3d_sh_backward": ([_f32p, _i64, _f32p, _i64, _f32p, _f32p, _i64, _int, _f32p, _int, _f32p, _f32p, _f32p], _int),
     "mlx3d_add_screen_statistics": ([_u8p, _f32p, _i32p, _i64, _f64, _f64, _f64p, _f64p, _f64p, _int], _int),
+    "mlx3d_knn_build": ([_f32p, _i64, _int, ctypes.POINTER(ctypes.c_void_p)], _int),
+    "mlx3d_knn_free": ([ctypes.c_void_p], _int),
+    "mlx3d_knn_info": ([ctypes.c_void_p, ctypes.POINTER(_i64), ctypes.POINTER(_int), ctypes.POINTER(_int), ctypes.POINTER(_i64)], _int),
+    "mlx3d_knn_order": ([ctypes.c_void_p, ctypes.POINTER(_i64)], _int),
+    "mlx3d_knn_query": ([ctypes.c_void_p, _f32p, _i64, _int, ctypes.POINTER(_i64), _int, _int, ctypes.POINTER(_i64), _f32p], _int),
 }
 
 
@@ -144,7 +149,8 @@ def _output(shape: tuple) -> tuple[mx.array, np.ndarray]:
     return out, view
 
 
-_POINTERS = {np.dtype(np.float32): _f32p, np.dtype(np.float64): _f64p, np.dtype(np.int32): _i32p, np.dtype(np.bool_): _u8p}
+_POINTERS = {np.dtype(np.float32): _f32p, np.dtype(np.float64): _f64p, np.dtype(np.int32): _i32p, np.dtype(np.bool_): _u8p,
+             np.dtype(np.int64): ctypes.POINTER(_i64)}
 
 
 def _ptr(a: np.ndarray | None):
@@ -227,3 +233,57 @@ def add_screen_statistics(visible, grad2d, radii, sx: float, sy: float, grad_acc
                  _numpy_in(radii, np.int32, "radii", n))
     _call("mlx3d_add_screen_statistics", _ptr(vis), _ptr(g), _ptr(r), n, float(sx), float(sy), *(_ptr(a) for a in stats),
           int(num_threads))
+
+
+# ------------------------------------------------------------------ k nearest neighbours
+class KDTree:
+    """k-d tree over C-contiguous float32 (N, 3) points (median split on the widest axis): ``mlx3d._core.KDTree``'s
+    methods and results, on the library's tree (freed with this object). Low-level; use mlx3d.neighbors."""
+
+    _OUTPUTS = {"neighbours": 0, "mean": 1, "kth": 2}
+
+    def __init__(self, points: np.ndarray, leaf_size: int = 16):
+        points = _numpy_in(points, np.float32, "points", np.asarray(points).size)
+        if points.ndim != 2 or points.shape[1] != 3:
+            raise ValueError(f"points must have shape (N, 3), got {points.shape}")
+        self._lib, self._tree = library(), ctypes.c_void_p()
+        _call("mlx3d_knn_build", _ptr(points), points.shape[0], int(leaf_size), ctypes.byref(self._tree))
+        size, leaf, depth, nodes = _i64(), _int(), _int(), _i64()
+        _call("mlx3d_knn_info", self._tree, ctypes.byref(size), ctypes.byref(leaf), ctypes.byref(depth), ctypes.byref(nodes))
+        self.size, self.leaf_size, self.depth, self.node_count = size.value, leaf.value, depth.value, nodes.value
+
+    def __del__(self):
+        tree = getattr(self, "_tree", None)
+        if tree:
+            self._lib.mlx3d_knn_free(tree)
+
+    def order(self) -> np.ndarray:
+        """Original point indices in tree order (spatially coherent), int64 (N,)."""
+        out = np.empty(self.size, np.int64)
+        _call("mlx3d_knn_order", self._tree, _ptr(out))
+        return out
+
+    def _query(self, queries, k: int, self_index, num_threads: int, output: str):
+        q = _numpy_in(queries, np.float32, "queries", np.asarray(queries).size).reshape(-1, 3)
+        m = q.shape[0]
+        own = None if self_index is None else _numpy_in(self_index, np.int64, "self_index", m)
+        if int(num_threads) < 0:
+            raise ValueError(f"num_threads must be >= 0 (0 = all), got {num_threads}")
+        index = np.empty((m, max(int(k), 0)), np.int64) if output == "neighbours" else None
+        dist = np.empty((m, max(int(k), 0)) if output == "neighbours" else (m,), np.float32)
+        _call("mlx3d_knn_query", self._tree, _ptr(q), m, int(k), _ptr(own), self._OUTPUTS[output], int(num_threads), _ptr(index),
+              _ptr(dist))
+        return index, dist
+
+    def query(self, queries, k: int, self_index=None, num_threads: int = 0):
+        """(indices int64 (M, k), squared distances float32 (M, k)) of each query's k nearest points, sorted by
+        distance (ties by index); ``self_index`` (int64 (M,), -1 = none) names each query's own point, skipped."""
+        return self._query(queries, k, self_index, num_threads, "neighbours")
+
+    def query_mean(self, queries, k: int, self_index=None, num_threads: int = 0) -> np.ndarray:
+        """Mean Euclidean distance to the k nearest points, float32 (M,)."""
+        return self._query(queries, k, self_index, num_threads, "mean")[1]
+
+    def query_kth(self, queries, k: int, self_index=None, num_threads: int = 0) -> np.ndarray:
+        """Euclidean distance to the k-th nearest point, float32 (M,)."""
+        return self._query(queries, k, self_index, num_threads, "kth")[1]

@@ -12,7 +12,7 @@ float64 from the float32 coordinates and returned as float32. Results are
 sorted by increasing distance (ties broken by point index) and do not depend
 on ``num_threads`` or ``chunk_size``. Both trees evaluate the same float64
 expressions, so they return bit-identical distances, means and k-th
-distances (as long as the compiler does not fuse ``csrc/knn.cpp``'s
+distances (as long as the compiler does not fuse ``csrc/kernels/knn.cpp``'s
 multiply-adds); the indices are identical too except where several points
 share a query's k-th distance: the numpy tree then keeps those of smallest
 index, the compiled one any of them.

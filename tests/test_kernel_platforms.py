@@ -13,8 +13,9 @@
   library that exports the API's functions. It never runs here.
 
 The inputs are a real trained splat file (tests/data/formats/opensplat_500.ply, 500 Gaussians of SH degree
-3: its coefficients and centres) seen from a camera beside it, with fixed pseudo-random output gradients, and
-for the densification statistics pseudo-random visibility, pixel gradients and radii of its 500 Gaussians.
+3: its coefficients and centres) seen from a camera beside it, with fixed pseudo-random output gradients; for
+the densification statistics pseudo-random visibility, pixel gradients and radii of its 500 Gaussians; for the
+k-d tree its centres and points scattered around them (the numpy tree, mlx3d.kdtree, is the oracle).
 The builds go to build/kernels-test/ (zig caches its own work, so a rebuild takes seconds). Skipped, with
 the reason, where zig (``ziglang``), wine or qemu-user with the arm64 C library are missing: ``make
 test-kernel-platforms`` installs them.
@@ -126,6 +127,17 @@ def statistics_calls():
                                              ("D", start[0]), ("D", start[1]), ("D", start[2]), ("i", threads)]) for threads in THREADS]
 
 
+def knn_calls():
+    """k nearest neighbours among the same file's Gaussian centres, for points spread around them: every output
+    kind (neighbours, mean, k-th), several thread counts, a leaf size of 1 and of 16."""
+    means = sh_inputs()[2]
+    queries = (means[::3] + np.random.default_rng(5).normal(size=(len(means[::3]), 3)) * 0.05).astype(np.float32)
+    n, m, k = len(means), len(queries), 8
+    return [("mlx3d_knn", [("f", means), ("i", n), ("i", leaf), ("f", queries), ("i", m), ("i", k), ("i", output), ("i", threads),
+                           ("o", m * k if output == 0 else m), ("l", m * k if output == 0 else 0)])
+            for output in (0, 1, 2) for threads in THREADS for leaf in (1, 16)]
+
+
 ARRAY_TYPES = {"f": "<f4", "u": "u1", "n": "<i4", "D": "<f8"}
 
 
@@ -154,9 +166,9 @@ def read_results(path: Path, calls) -> list:
         at += length
         outs = []
         for kind, _ in args:
-            if kind in ("o", "D"):
+            if kind in ("o", "l", "D"):
                 (count,) = struct.unpack_from("<Q", data, at)
-                dtype = np.dtype("<f4" if kind == "o" else "<f8")
+                dtype = np.dtype({"o": "<f4", "l": "<i8", "D": "<f8"}[kind])
                 outs.append(np.frombuffer(data, dtype, count, at + 8).copy())
                 at += 8 + dtype.itemsize * count
         results.append((rc, error, outs))
@@ -282,20 +294,76 @@ def test_statistics_in_process_are_numpys_and_cores(builds, monkeypatch):
         kernel_library.add_screen_statistics(visible, grad2d, radii[1:], sx, sy, *stats)
 
 
+def test_knn_in_process_is_cores_and_the_numpy_trees(builds, monkeypatch):
+    from mlx3d import kdtree, kernel_library, native
+
+    folder = builds("linux-x64")
+    monkeypatch.setenv(kernel_library.PATH_ENV, str(folder / kernel_build.library_name("linux-x64")))
+    monkeypatch.setattr(kernel_library, "_lib", None)
+    monkeypatch.setattr(kernel_library, "_failure", None)
+    means = sh_inputs()[2]
+    queries = means[::2] + np.float32(0.01)
+    own = np.arange(len(means), dtype=np.int64)
+    trees = [kernel_library.KDTree(means, 4), kdtree.KDTree(means, 4)] + ([native.core().KDTree(means, 4)] if native.available() else [])
+    assert len({(t.size, t.leaf_size, t.depth, t.node_count) for t in trees}) == 1
+    assert sorted(trees[0].order()) == list(range(len(means)))
+    assert all(np.array_equal(trees[0].order(), t.order()) for t in trees[2:])  # _core's tree is the same tree
+    for threads in THREADS:
+        got = [trees[0].query(queries, 6, num_threads=threads), trees[0].query(means, 3, self_index=own, num_threads=threads),
+               trees[0].query_mean(queries, 5, num_threads=threads), trees[0].query_kth(queries, 5, num_threads=threads)]
+        for other in trees[1:]:
+            want = [other.query(queries, 6), other.query(means, 3, self_index=own), other.query_mean(queries, 5), other.query_kth(queries, 5)]
+            for g, w in zip(got, want):
+                for a, b in zip(g if isinstance(g, tuple) else (g,), w if isinstance(w, tuple) else (w,)):
+                    assert np.asarray(a).tobytes() == np.asarray(b).astype(np.asarray(a).dtype).tobytes()
+    with pytest.raises(RuntimeError, match="mlx3d_knn_query: k must be >= 1, got 0"):
+        trees[0].query(queries, 0)
+    with pytest.raises(RuntimeError, match="mlx3d_knn_build: leaf_size must be >= 1, got 0"):
+        kernel_library.KDTree(means, 0)
+
+
+def test_linux_build_exports_the_api_alone(builds):
+    """The library carries its C++ runtime inside (static libstdc++) and exports nothing of it."""
+    nm = shutil.which("nm")
+    if nm is None:
+        pytest.skip("nm (binutils) is not installed")
+    lib = builds("linux-x64") / kernel_build.library_name("linux-x64")
+    out = subprocess.run([nm, "-D", "--defined-only", str(lib)], capture_output=True, text=True, check=True).stdout
+    exported = {line.split()[-1] for line in out.splitlines() if line.split()[1] in "TWDBVR"}
+    header = (ROOT / "mlx3d" / "csrc" / "kernels" / "mlx3d_kernels.h").read_text()
+    import re
+
+    assert exported == set(re.findall(r"MLX3D_API \w[\w\s\*]*?\b(mlx3d_\w+)\(", header))
+    needed = subprocess.run(["ldd", str(lib)], capture_output=True, text=True).stdout if shutil.which("ldd") else ""
+    assert "libstdc++" not in needed
+
+
 @pytest.mark.parametrize("platform", ["windows-x64", "linux-arm64"])
 def test_other_platforms_builds_give_the_linux_builds_results(builds, platform, tmp_path):
     runner = wine_command() if platform == "windows-x64" else qemu_command()
     if runner is None:
         pytest.skip(f"{'wine' if platform == 'windows-x64' else 'qemu-user and the arm64 C library'} not installed "
                     "(`make test-kernel-platforms` installs them)")
-    calls = sh_calls() + statistics_calls()
+    calls = sh_calls() + statistics_calls() + knn_calls()
     reference = run_driver(builds("linux-x64"), "linux-x64", [], calls, tmp_path)
     bad = len(sh_calls()) - 1
     assert reference[bad][0] == 1 and "degree must be 0..3, got 4" in reference[bad][1]
     assert all(rc == 0 and np.isfinite(np.concatenate(outs)).all() for rc, _, outs in reference[:bad])
-    for (_, args), (rc, _, outs) in zip(calls[bad + 1:], reference[bad + 1:]):  # the statistics: numpy's float64 expression
-        expected = numpy_statistics(*(a[1] for a in args[:3]), args[4][1], args[5][1], *(a[1] for a in args[6:9]))
-        assert rc == 0 and all(o.tobytes() == e.tobytes() for o, e in zip(outs, expected))
+    for (name, args), (rc, _, outs) in zip(calls[bad + 1:], reference[bad + 1:]):
+        assert rc == 0
+        if name == "mlx3d_add_screen_statistics":  # numpy's float64 expression
+            expected = numpy_statistics(*(a[1] for a in args[:3]), args[4][1], args[5][1], *(a[1] for a in args[6:9]))
+            assert all(o.tobytes() == e.tobytes() for o, e in zip(outs, expected))
+        else:  # the numpy k-d tree's neighbours and distances (mlx3d.kdtree, the same float32 arithmetic)
+            from mlx3d.kdtree import KDTree
+
+            tree, queries, k, output = KDTree(args[0][1], args[2][1]), args[3][1], args[5][1], args[6][1]
+            if output == 0:
+                index, dist = tree.query(queries, k)
+                assert np.array_equal(outs[1].reshape(-1, k), index) and outs[0].tobytes() == dist.astype(np.float32).tobytes()
+            else:
+                expected = (tree.query_mean if output == 1 else tree.query_kth)(queries, k)
+                assert outs[0].tobytes() == expected.astype(np.float32).tobytes()
     check_same(run_driver(builds(platform), platform, runner, calls, tmp_path), reference, calls)
 
 

@@ -10,7 +10,7 @@
 #include <string>
 
 #include "bindings.h"
-#include "knn.h"
+#include "kernels/knn.h"
 
 namespace nb = nanobind;
 using namespace nb::literals;

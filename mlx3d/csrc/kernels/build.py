@@ -31,7 +31,7 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[2]
-SOURCES = ["api.cpp", "sh.cpp", "statistics.cpp"]
+SOURCES = ["api.cpp", "sh.cpp", "statistics.cpp", "knn.cpp", "knn_api.cpp"]
 FLAGS = ["-std=c++17", "-O3", "-ffp-contract=off", "-fno-math-errno", "-fvisibility=hidden", "-Wall", "-Wno-psabi"]
 #: zig target triples; None: the host compiler.
 TARGETS = {"linux-x64": None, "windows-x64": "x86_64-windows-gnu", "linux-arm64": "aarch64-linux-gnu.2.17",
@@ -77,10 +77,10 @@ def build(platform: str, out: Path, driver: bool = False, cxx: str | None = None
     link = ["-shared", "-s"]
     if platform == "macos-arm64":
         link += [f"-Wl,-install_name,@rpath/{lib.name}"]
-    elif platform != "windows-x64":
-        link += ["-fPIC", "-pthread"]
+    elif platform != "windows-x64":  # Linux: the API alone (std:: templates would otherwise be exported too)
+        link += ["-fPIC", "-pthread", f"-Wl,--version-script={HERE / 'exports.map'}"]
     if platform == "linux-x64":  # the C++ runtime inside: the library needs only glibc, whatever the host ships
-        link += ["-static-libstdc++", "-static-libgcc"]
+        link += ["-static-libstdc++", "-static-libgcc", "-Wl,--exclude-libs,ALL"]  # and none of its symbols exported
     cmd = [*cxx_cmd, *FLAGS, *link, *(str(HERE / s) for s in SOURCES), "-o", str(lib)]
     subprocess.run(cmd, check=True)
     if driver:

@@ -9,9 +9,11 @@
  * CALLS: "MLX3DK1\n", then records until the end of the file, each: u32 name length, the function's name,
  * u32 argument count, then per argument one kind byte and a u64: 'i' an integer argument (the u64, as
  * two's complement), 'x' a double argument (the u64's bits), or the element count of an array whose elements
- * follow for inputs: 'f' float32, 'u' uint8, 'n' int32, 'D' float64 updated in place; 'o' a float32 output
- * array (nothing follows). OUT: per record, i32 the return value, u32 length and text of
- * mlx3d_last_error(), then per 'o' and 'D' argument u64 count and its elements. Little-endian throughout.
+ * follow for inputs: 'f' float32, 'u' uint8, 'n' int32, 'D' float64 updated in place; 'o' a float32 and 'l'
+ * an int64 output array (nothing follows). OUT: per record, i32 the return value, u32 length and text of
+ * mlx3d_last_error(), then per 'o', 'l' and 'D' argument u64 count and its elements. Little-endian throughout.
+ * The record "mlx3d_knn" builds a tree, queries it and frees it (the API's three calls), with the arguments
+ * points, n, leaf size, queries, m, k, output, threads, out_dist, out_index.
  */
 #include <stdint.h>
 #include <stdio.h>
@@ -48,7 +50,7 @@ static size_t element_size(char kind) {
   switch (kind) {
     case 'f': case 'o': case 'n': return 4;
     case 'u': return 1;
-    case 'D': return 8;
+    case 'D': case 'l': return 8;
     case 'i': case 'x': return 0;
     default: fail("unknown argument kind");
   }
@@ -66,6 +68,9 @@ static void write_exact(FILE* f, const void* p, size_t n) {
 typedef int (*sh_forward_t)(const float*, int64_t, const float*, int64_t, const float*, const float*, int64_t, int, int, float*);
 typedef int (*sh_backward_t)(const float*, int64_t, const float*, int64_t, const float*, const float*, int64_t, int, const float*, int,
                              float*, float*, float*);
+typedef int (*knn_build_t)(const float*, int64_t, int, void**);
+typedef int (*knn_free_t)(void*);
+typedef int (*knn_query_t)(const void*, const float*, int64_t, int, const int64_t*, int, int, int64_t*, float*);
 typedef int (*statistics_t)(const uint8_t*, const float*, const int32_t*, int64_t, double, double, double*, double*, double*, int);
 
 #define I(k) ((int64_t)args[k].count)
@@ -88,6 +93,18 @@ static int kinds_are(const Arg* args, uint32_t nargs, const char* want) {
 
 /* Calls `name` with `args` (their kinds checked against its signature); the function's return value. */
 static int call(library_t lib, const char* name, Arg* args, uint32_t nargs) {
+  if (!strcmp(name, "mlx3d_knn")) {
+    if (!kinds_are(args, nargs, "fiifiiiiol")) fail("mlx3d_knn: arguments of the wrong kinds");
+    knn_build_t build = (knn_build_t)symbol(lib, "mlx3d_knn_build");
+    knn_query_t query = (knn_query_t)symbol(lib, "mlx3d_knn_query");
+    knn_free_t release = (knn_free_t)symbol(lib, "mlx3d_knn_free");
+    if (!build || !query || !release) fail("the library has no k-NN functions");
+    void* tree = NULL;
+    int rc = build(F(0), I(1), (int)I(2), &tree);
+    if (rc == 0) rc = query(tree, F(3), I(4), (int)I(5), NULL, (int)I(6), (int)I(7), (int64_t*)args[9].data, F(8));
+    if (tree && release(tree) != 0) fail("mlx3d_knn_free failed");
+    return rc;
+  }
   void* fn = symbol(lib, name);
   if (!fn) fail("the library has no function of that name");
   if (!strcmp(name, "mlx3d_sh_forward")) {
@@ -137,7 +154,7 @@ int main(int argc, char** argv) {
       if (size && args[k].count) {
         args[k].data = malloc(args[k].count * size);
         if (!args[k].data) fail("out of memory");
-        if (args[k].kind == 'o') memset(args[k].data, 0xff, args[k].count * size);  /* NaN: what the kernel leaves unwritten shows */
+        if (args[k].kind == 'o' || args[k].kind == 'l') memset(args[k].data, 0xff, args[k].count * size);  /* NaN / -1: unwritten shows */
         else read_exact(in, args[k].data, args[k].count * size);
       }
     }
@@ -148,7 +165,7 @@ int main(int argc, char** argv) {
     write_exact(out, &error_length, 4);
     write_exact(out, error, error_length);
     for (uint32_t k = 0; k < nargs; ++k) {
-      if (args[k].kind == 'o' || args[k].kind == 'D') {
+      if (args[k].kind == 'o' || args[k].kind == 'l' || args[k].kind == 'D') {
         write_exact(out, &args[k].count, 8);
         write_exact(out, args[k].data, args[k].count * element_size(args[k].kind));
       }

@@ -57,6 +57,21 @@ MLX3D_API int mlx3d_sh_backward(const float* block0, int64_t k0, const float* bl
 MLX3D_API int mlx3d_add_screen_statistics(const uint8_t* visible, const float* grad2d, const int32_t* radii, int64_t n, double sx,
                                           double sy, double* grad_accum, double* grad_count, double* max_radii, int threads);
 
+/* k nearest neighbours of 3D points with a k-d tree (median split on the widest axis; distances accumulated in
+ * double). mlx3d_knn_build: a tree over xyz (n, 3), all finite, leaf_size >= 1, into *tree (free it with
+ * mlx3d_knn_free; a tree is read-only, so it may be queried from several threads). mlx3d_knn_info: its point
+ * count, leaf size, levels and nodes. mlx3d_knn_order: int64 (n,) the points' indices in tree order (spatially
+ * coherent). mlx3d_knn_query: for queries (m, 3) and k: output 0 writes out_index int64 (m, k) and out_dist
+ * (m, k) squared distances, sorted by distance (ties by index); 1 the mean Euclidean distance to the k nearest
+ * and 2 the distance to the k-th, out_dist (m,) (out_index unused). self_index int64 (m,) or NULL: each query's
+ * own point to skip (-1: none). */
+MLX3D_API int mlx3d_knn_build(const float* xyz, int64_t n, int leaf_size, void** tree);
+MLX3D_API int mlx3d_knn_free(void* tree);
+MLX3D_API int mlx3d_knn_info(const void* tree, int64_t* size, int* leaf_size, int* depth, int64_t* node_count);
+MLX3D_API int mlx3d_knn_order(const void* tree, int64_t* order);
+MLX3D_API int mlx3d_knn_query(const void* tree, const float* queries, int64_t m, int k, const int64_t* self_index, int output,
+                              int threads, int64_t* out_index, float* out_dist);
+
 #ifdef __cplusplus
 }
 #endif

@@ -3,7 +3,7 @@
 // The tree is built once (median split on the widest axis of each node's tight
 // bounding box) and queried with a bounded max-heap per query. Distances are
 // accumulated in double precision, so results do not depend on the magnitude
-// of the coordinates. Queries are spread over the kernels' worker threads (run_threads, primitive_util.h).
+// of the coordinates. Queries are spread over the kernels' worker threads (run_threads, parallel.h).
 #pragma once
 
 #include <cstdint>

@@ -1,6 +1,6 @@
 #include "knn.h"
 
-#include "primitive_util.h"
+#include "parallel.h"
 
 #include <algorithm>
 #include <atomic>
