@@ -11,7 +11,8 @@ library glibc 2.17, the macOS library macOS 11). The library goes to
 ``DIR/NAME`` (default ``build/kernels/PLATFORM/``), NAME as
 ``mlx3d.kernel_library.LIBRARY_NAMES``; with ``--driver`` also the test driver
 (``driver.c``, ``kernel_driver`` or ``kernel_driver.exe``). Only the functions of
-``mlx3d_kernels.h`` are exported.
+``mlx3d_kernels.h`` are exported (hidden visibility; on Linux also the version
+script ``exports.map``), and the Linux x86-64 build carries its C++ runtime.
 
 Every file gets the flags mlx3d._core's build gives the kernels
 (CMakeLists.txt): ``-O3 -ffp-contract=off -fno-math-errno`` (no FMA
