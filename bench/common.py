@@ -7,6 +7,7 @@ import resource
 import statistics
 import sys
 import threading
+import time
 
 
 def rss_kib() -> tuple[int, int]:
@@ -38,6 +39,18 @@ def peak_rss_mb() -> float:
         pass
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return peak / 1024.0 / (1024.0 if sys.platform == "darwin" else 1.0)  # bytes on macOS, KiB on Linux
+
+
+def median_ms(fn, repeats: int) -> float:
+    """Median wall time of ``repeats`` calls of ``fn`` in milliseconds, after one warm-up call (first-call
+    allocations and compilation)."""
+    fn()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return 1000.0 * sorted(times)[len(times) // 2]
 
 
 def emit(table: str, markdown_path: str | None) -> None:
@@ -97,8 +110,6 @@ class LoadSampler(threading.Thread):
 def train_to_milestones(trainer, dataset, milestones, label: str):
     """Train ``trainer`` on ``dataset`` up to each step count of ``milestones`` in turn, printing a progress line
     (step, loss, training PSNR, Gaussians, seconds) every tenth of the last; yields (milestone, seconds trained)."""
-    import time
-
     trained, done, started = 0.0, 0, [0.0]
     every = max(milestones[-1] // 10, 1)
 
@@ -120,8 +131,6 @@ def train_to_milestones(trainer, dataset, milestones, label: str):
 def held_out_metrics(model, dataset, background) -> dict:
     """``mlx3d.training.evaluate.evaluate`` on the test split as the benchmark rows hold it: means, worst views,
     colour-corrected figures, the time it took and every view's own figures (``per_view``)."""
-    import time
-
     from mlx3d.training.evaluate import evaluate
 
     start = time.perf_counter()

@@ -24,22 +24,11 @@ import datetime
 import os
 import subprocess
 import sys
-import time
 
-from common import LoadSampler, emit, machine_line  # bench/ is on sys.path when run as a script
+from common import LoadSampler, emit, machine_line, median_ms  # bench/ is on sys.path when run as a script
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
-
-
-def _median_ms(fn, repeats: int) -> float:
-    fn()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return 1000.0 * sorted(times)[len(times) // 2]
 
 
 def _library() -> str:
@@ -84,16 +73,16 @@ def measure(n: int, repeats: int) -> list:
         times = {}
         for name, fn in ways.items():
             grad = mx.value_and_grad(lambda a, b, m, fn=fn: (fn([a, b], m, centre, 3) * w).sum(), argnums=(0, 1, 2))
-            times[("SH colour, forward", name)] = _median_ms(lambda fn=fn: mx.eval(fn([dc, rest], means, centre, 3)), repeats)
-            times[("SH colour, forward and backward", name)] = _median_ms(lambda grad=grad: mx.eval(grad(dc, rest, means)), repeats)
-        times[("SH colour, forward", "pure")] = _median_ms(lambda: mx.eval(pure_colours(dc, rest, means)), repeats)
+            times[("SH colour, forward", name)] = median_ms(lambda fn=fn: mx.eval(fn([dc, rest], means, centre, 3)), repeats)
+            times[("SH colour, forward and backward", name)] = median_ms(lambda grad=grad: mx.eval(grad(dc, rest, means)), repeats)
+        times[("SH colour, forward", "pure")] = median_ms(lambda: mx.eval(pure_colours(dc, rest, means)), repeats)
         pure_grad = mx.value_and_grad(lambda a, b, m: (pure_colours(a, b, m) * w).sum(), argnums=(0, 1, 2))
-        times[("SH colour, forward and backward", "pure")] = _median_ms(lambda: mx.eval(pure_grad(dc, rest, means)), repeats)
-        times[("statistics of a view", "_core")] = _median_ms(
+        times[("SH colour, forward and backward", "pure")] = median_ms(lambda: mx.eval(pure_grad(dc, rest, means)), repeats)
+        times[("statistics of a view", "_core")] = median_ms(
             lambda: native.core().add_screen_statistics(visible, grad2d, radii, 324.0, 210.0, *stats, threads), repeats)
-        times[("statistics of a view", "library")] = _median_ms(
+        times[("statistics of a view", "library")] = median_ms(
             lambda: kernel_library.add_screen_statistics(visible, grad2d, radii, 324.0, 210.0, *stats, threads), repeats)
-        times[("statistics of a view", "pure")] = _median_ms(pure_statistics, repeats)
+        times[("statistics of a view", "pure")] = median_ms(pure_statistics, repeats)
         for case in dict.fromkeys(c for c, _ in times):
             core, lib, pure = (times[(case, w)] for w in ("_core", "library", "pure"))
             rows.append((case, "1" if threads == 1 else f"all ({os.cpu_count()})", core, lib, pure))

@@ -30,20 +30,10 @@ import subprocess
 import sys
 import time
 
-from common import LoadSampler, emit, machine_line, peak_rss_mb  # bench/ is on sys.path when run as a script
+from common import LoadSampler, emit, machine_line, median_ms, peak_rss_mb  # bench/ is on sys.path when run as a script
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 MODES = ("core", "pure")
-
-
-def _median_ms(fn, repeats: int) -> float:
-    fn()  # warm-up
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return 1000.0 * sorted(times)[len(times) // 2]
 
 
 def _garden(repeats: int) -> dict:
@@ -53,11 +43,11 @@ def _garden(repeats: int) -> dict:
     from train_scale import _setup
 
     model, camera, target = _setup(138766, 1)
-    render_ms = _median_ms(lambda: mx.eval(model.render(camera, background=(0, 0, 0))["image"]), repeats)
+    render_ms = median_ms(lambda: mx.eval(model.render(camera, background=(0, 0, 0))["image"]), repeats)
     config = TrainerConfig(steps=10**6, densify_from=10**5, densify_until=10**6, sh_increase_every=0)
     trainer = GaussianTrainer(model, config, scene_extent=5.0)
     trainer.active_sh_degree = 3
-    step_ms = _median_ms(lambda: trainer.step(camera, target), repeats)
+    step_ms = median_ms(lambda: trainer.step(camera, target), repeats)
     return {"case": "garden 138,766 (648x420)", "render_ms": render_ms, "step_ms": step_ms, "steps_per_s": 1000.0 / step_ms}
 
 
@@ -78,7 +68,7 @@ def _demo(path: str, steps: int, repeats: int) -> dict:
     seconds = time.perf_counter() - t0
     report = evaluate(trainer.model, dataset, "test", background)
     view = dataset.test[0]
-    render_ms = _median_ms(lambda: mx.eval(render_view(trainer.model, dataset, view, background)[1]), repeats)
+    render_ms = median_ms(lambda: mx.eval(render_view(trainer.model, dataset, view, background)[1]), repeats)
     frame = dataset.frames[view]
     return {"case": f"demo scene, {steps} steps ({frame.camera.width}x{frame.camera.height})", "render_ms": render_ms,
             "steps_per_s": steps / seconds, "psnr": report["psnr"], "psnr_worst": report["worst"]["psnr"], "gaussians": len(trainer.model)}

@@ -39,23 +39,12 @@ import subprocess
 import sys
 import time
 
-from common import LoadSampler, emit, machine_line, peak_rss_mb  # bench/ is on sys.path when run as a script
+from common import LoadSampler, emit, machine_line, median_ms, peak_rss_mb  # bench/ is on sys.path when run as a script
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 GARDEN = os.path.join(HERE, "..", "..", "shared", "data", "test_garden.npz")
 CASES = "138766:1,1000000:2"  # gaussians:scale
 PARAMS_PER_GAUSSIAN = 59  # means 3, quats 4, scales 3, opacity 1, SH 16x3
-
-
-def _median_ms(fn, repeats: int) -> float:
-    fn()  # warm-up: first-call allocations and compilation
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    times.sort()
-    return 1000.0 * times[len(times) // 2]
 
 
 def _waiting_ms():
@@ -224,7 +213,7 @@ def _bandwidth_gbs() -> float:
 
     n = 64 * 1024 * 1024
     a, b, c = np.ones(n, np.float32), np.ones(n, np.float32), np.empty(n, np.float32)
-    ms = _median_ms(lambda: np.add(a, b, out=c), 5)
+    ms = median_ms(lambda: np.add(a, b, out=c), 5)
     return 3 * 4 * n / (ms / 1000.0) / 1e9
 
 
