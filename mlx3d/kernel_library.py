@@ -209,9 +209,14 @@ def sh_colors(sh: list, means: mx.array, centre: mx.array, degree: int, num_thre
 
 
 # ------------------------------------------------------------------ densification statistics
+def _contiguous(a, dtype) -> np.ndarray:
+    """``a`` (numpy or MLX) as a C-contiguous ``dtype`` array (read in place when it is one)."""
+    return np.ascontiguousarray(np.asarray(mx.stop_gradient(a) if isinstance(a, mx.array) else a), dtype=dtype)
+
+
 def _numpy_in(a, dtype, name: str, size: int) -> np.ndarray:
-    """``a`` (numpy or MLX) as a C-contiguous ``dtype`` array of ``size`` elements (read in place when it is one)."""
-    a = np.ascontiguousarray(np.asarray(mx.stop_gradient(a) if isinstance(a, mx.array) else a), dtype=dtype)
+    """``_contiguous(a, dtype)``, which must hold ``size`` elements."""
+    a = _contiguous(a, dtype)
     if a.size != size:
         raise ValueError(f"{name} must hold {size} elements, got {a.size}")
     return a
@@ -243,7 +248,7 @@ class KDTree:
     _OUTPUTS = {"neighbours": 0, "mean": 1, "kth": 2}
 
     def __init__(self, points: np.ndarray, leaf_size: int = 16):
-        points = _numpy_in(points, np.float32, "points", np.asarray(points).size)
+        points = _contiguous(points, np.float32)
         if points.ndim != 2 or points.shape[1] != 3:
             raise ValueError(f"points must have shape (N, 3), got {points.shape}")
         self._lib, self._tree = library(), ctypes.c_void_p()
@@ -264,7 +269,7 @@ class KDTree:
         return out
 
     def _query(self, queries, k: int, self_index, num_threads: int, output: str):
-        q = _numpy_in(queries, np.float32, "queries", np.asarray(queries).size).reshape(-1, 3)
+        q = _contiguous(queries, np.float32).reshape(-1, 3)
         m = q.shape[0]
         own = None if self_index is None else _numpy_in(self_index, np.int64, "self_index", m)
         if int(num_threads) < 0:

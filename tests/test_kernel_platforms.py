@@ -80,6 +80,15 @@ def builds():
     return get
 
 
+def use_library(monkeypatch, path: Path) -> None:
+    """``mlx3d.kernel_library`` loads ``path`` on its next use (not the library it may have loaded already)."""
+    from mlx3d import kernel_library
+
+    monkeypatch.setenv(kernel_library.PATH_ENV, str(path))
+    monkeypatch.setattr(kernel_library, "_lib", None)
+    monkeypatch.setattr(kernel_library, "_failure", None)
+
+
 # ------------------------------------------------------------------ the calls: a real splat file's SH
 def sh_inputs():
     from mlx3d.io import read_splats
@@ -212,9 +221,7 @@ def test_linux_build_is_core_and_the_reference(builds, monkeypatch):
     from mlx3d.splatting.sh import eval_sh
 
     folder = builds("linux-x64")
-    monkeypatch.setenv(kernel_library.PATH_ENV, str(folder / kernel_build.library_name("linux-x64")))
-    monkeypatch.setattr(kernel_library, "_lib", None)
-    monkeypatch.setattr(kernel_library, "_failure", None)
+    use_library(monkeypatch, folder / kernel_build.library_name("linux-x64"))
     assert kernel_library.available(), kernel_library.failure()
     dc, rest, means, centre, cot = (mx.array(a) for a in sh_inputs())
     for degree in range(4):
@@ -244,9 +251,7 @@ def test_bad_calls_are_errors_that_name_the_problem(builds, monkeypatch):
     from mlx3d import kernel_library
 
     folder = builds("linux-x64")
-    monkeypatch.setenv(kernel_library.PATH_ENV, str(folder / kernel_build.library_name("linux-x64")))
-    monkeypatch.setattr(kernel_library, "_lib", None)
-    monkeypatch.setattr(kernel_library, "_failure", None)
+    use_library(monkeypatch, folder / kernel_build.library_name("linux-x64"))
     dc, rest, means, centre, _ = (mx.array(a) for a in sh_inputs())
     strided = mx.concatenate([means, means], axis=1)[:, :3]  # rows 6 floats apart: read through one copy
     assert np.array_equal(np.array(kernel_library.sh_colors([dc, rest], strided, centre, 3)),
@@ -257,9 +262,7 @@ def test_bad_calls_are_errors_that_name_the_problem(builds, monkeypatch):
         kernel_library.sh_colors([dc, rest], means.astype(mx.float16), centre, 3)
     with pytest.raises(ValueError, match=r"means must have shape \(500, 3\), got \(499, 3\)"):
         kernel_library.sh_colors([dc, rest], means[1:], centre, 3)
-    monkeypatch.setenv(kernel_library.PATH_ENV, str(folder / "nowhere.so"))
-    monkeypatch.setattr(kernel_library, "_lib", None)
-    monkeypatch.setattr(kernel_library, "_failure", None)
+    use_library(monkeypatch, folder / "nowhere.so")
     assert not kernel_library.available() and "nowhere.so does not exist" in kernel_library.failure()
 
 
@@ -274,9 +277,7 @@ def test_statistics_in_process_are_numpys_and_cores(builds, monkeypatch):
     from mlx3d import kernel_library, native
 
     folder = builds("linux-x64")
-    monkeypatch.setenv(kernel_library.PATH_ENV, str(folder / kernel_build.library_name("linux-x64")))
-    monkeypatch.setattr(kernel_library, "_lib", None)
-    monkeypatch.setattr(kernel_library, "_failure", None)
+    use_library(monkeypatch, folder / kernel_build.library_name("linux-x64"))
     for _, args in statistics_calls():
         visible, grad2d, radii = (a[1] for a in args[:3])
         sx, sy, threads = args[4][1], args[5][1], args[9][1]
@@ -298,9 +299,7 @@ def test_knn_in_process_is_cores_and_the_numpy_trees(builds, monkeypatch):
     from mlx3d import kdtree, kernel_library, native
 
     folder = builds("linux-x64")
-    monkeypatch.setenv(kernel_library.PATH_ENV, str(folder / kernel_build.library_name("linux-x64")))
-    monkeypatch.setattr(kernel_library, "_lib", None)
-    monkeypatch.setattr(kernel_library, "_failure", None)
+    use_library(monkeypatch, folder / kernel_build.library_name("linux-x64"))
     means = sh_inputs()[2]
     queries = means[::2] + np.float32(0.01)
     own = np.arange(len(means), dtype=np.int64)
