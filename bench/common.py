@@ -53,6 +53,25 @@ def median_ms(fn, repeats: int) -> float:
     return 1000.0 * sorted(times)[len(times) // 2]
 
 
+NO_NOTES = "(Not described yet.)"
+
+
+def page_notes(path: str, names) -> dict:
+    """The hand-written parts of a benchmark page that its script writes again: {name: the text between
+    ``<!-- notes:NAME -->`` and ``<!-- /notes:NAME -->``}, ``NO_NOTES`` where the page or the block is missing."""
+    try:
+        with open(path, encoding="utf-8") as f:
+            text = f.read()
+    except OSError:
+        text = ""
+    notes = {}
+    for name in names:
+        start_mark, end_mark = f"<!-- notes:{name} -->", f"<!-- /notes:{name} -->"
+        start, end = text.find(start_mark), text.find(end_mark)
+        notes[name] = text[start + len(start_mark):end].strip() if 0 <= start < end else NO_NOTES
+    return notes
+
+
 def emit(table: str, markdown_path: str | None) -> None:
     """Print a markdown table and, when asked, write it to ``markdown_path``."""
     print(table)

@@ -77,7 +77,7 @@ sys.path.insert(0, os.path.join(ROOT, "tests"))  # photo_capture: the similarity
 
 import captures  # noqa: E402  (bench/ is on sys.path when run as a script)
 import scenes  # noqa: E402
-from common import LoadSampler, commit_info, load_results, machine_line, parse_only, peak_rss_mb  # noqa: E402
+from common import LoadSampler, commit_info, load_results, machine_line, page_notes, parse_only, peak_rss_mb  # noqa: E402
 from mesh_quality import compare, render_meshes, sample_surface  # noqa: E402
 
 OBJECTS = ("suzanne", "bumpy_sphere", "torus_knot", "suzanne_ground")
@@ -383,8 +383,7 @@ def _icp(row) -> str:
 
 def _photos(row) -> str:
     """The photos a row's capture was solved from, and the factor training and fusion read them smaller by."""
-    width, height = row.get("photo_size", (320, 240))  # rows from before photo sizes were recorded: 320 x 240
-    factor = row.get("factor", 1)
+    (width, height), factor = row["photo_size"], row["factor"]
     return f"{width} × {height}" + (f" ÷ {factor}" if factor != 1 else "")
 
 
@@ -416,21 +415,6 @@ def save_results(results, rows, captured) -> None:
         f.write("\n")
 
 
-NOTES_START, NOTES_END = "<!-- notes:results -->", "<!-- /notes:results -->"
-
-
-def _notes(path) -> str:
-    """The page's hand-written part between NOTES_START and NOTES_END (what the numbers and pictures show), kept
-    when the page is written again."""
-    try:
-        with open(path, encoding="utf-8") as f:
-            text = f.read()
-    except OSError:
-        return "(Not described yet.)"
-    start, end = text.find(NOTES_START), text.find(NOTES_END)
-    return text[start + len(NOTES_START):end].strip() if 0 <= start < end else "(Not described yet.)"
-
-
 def write_page(path, results) -> None:
     rows, captured = results["rows"], results["captures"]
     runs = {}
@@ -456,7 +440,7 @@ def write_page(path, results) -> None:
         lines.append(f"| {name} | {width} × {height} | {info['registered']} of {info['photos']} | "
                      f"{info.get('rotation_deg', float('nan')):.2f}° | {info.get('position_pct', float('nan')):.2f} % | "
                      f"{info.get('focal_solved', float('nan')):.1f} px ({info.get('focal_true', float('nan')):.1f}) |")
-    lines += ["", table(rows), "", NOTES_START, _notes(path), NOTES_END, ""]
+    lines += ["", table(rows), "", "<!-- notes:results -->", page_notes(path, ["results"])["results"], "<!-- /notes:results -->", ""]
     for name in sorted(captured, key=lambda n: OBJECTS.index(n) if n in OBJECTS else 99):
         picture = os.path.join(PICTURES, f"{name}.png")
         if os.path.isfile(os.path.join(os.path.dirname(path), picture)):

@@ -35,12 +35,12 @@ import argparse
 import datetime
 import json
 import os
-import re
 import subprocess
 import sys
 import threading
 
-from common import LoadSampler, commit_info, held_out_metrics, load_results, machine_line, peak_rss_mb, train_to_milestones  # bench/ is on sys.path when run as a script
+from common import (LoadSampler, commit_info, held_out_metrics, load_results, machine_line, page_notes, peak_rss_mb,
+                    train_to_milestones)  # bench/ is on sys.path when run as a script
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
@@ -189,18 +189,8 @@ def _pictures(rows) -> str:
     return "\n".join(out)
 
 
-DEFAULT_NOTES = "(Not described yet.)"
-
-
 def write_page(path, results) -> None:
-    notes = {name: DEFAULT_NOTES for name in NOTES}
-    if os.path.isfile(path):
-        with open(path, encoding="utf-8") as f:
-            text = f.read()
-        for name in NOTES:
-            m = re.search(re.escape(f"<!-- notes:{name} -->") + r"\n(.*?)\n" + re.escape(f"<!-- /notes:{name} -->"), text, re.S)
-            if m:
-                notes[name] = m.group(1).strip()
+    notes = page_notes(path, NOTES)
     rows, captures = results["rows"], results.get("captures", {})
     machines = sorted({r["machine"] for r in rows})
     page = f"""# Realistic captures: cameras from our own SfM
