@@ -128,6 +128,11 @@ def build_info() -> str:
 
 
 # ------------------------------------------------------------------ arrays across the boundary
+def _contiguous(a, dtype) -> np.ndarray:
+    """``a`` (numpy or MLX) as a C-contiguous ``dtype`` array (read in place when it is one)."""
+    return np.ascontiguousarray(np.asarray(mx.stop_gradient(a) if isinstance(a, mx.array) else a), dtype=dtype)
+
+
 def _host(a: mx.array, name: str, shape: tuple) -> np.ndarray:
     """``a`` evaluated as a C-contiguous float32 numpy array (its own memory when it is one already), checked
     against ``shape`` (None: any size on that axis)."""
@@ -136,8 +141,7 @@ def _host(a: mx.array, name: str, shape: tuple) -> np.ndarray:
     if a.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, a.shape)):
         want = "(" + ", ".join("any" if s is None else str(s) for s in shape) + ("," if len(shape) == 1 else "") + ")"
         raise ValueError(f"{name} must have shape {want}, got {tuple(a.shape)}")
-    mx.eval(a)
-    return np.ascontiguousarray(np.asarray(a))
+    return _contiguous(a, np.float32)
 
 
 def _output(shape: tuple) -> tuple[mx.array, np.ndarray]:
@@ -209,11 +213,6 @@ def sh_colors(sh: list, means: mx.array, centre: mx.array, degree: int, num_thre
 
 
 # ------------------------------------------------------------------ densification statistics
-def _contiguous(a, dtype) -> np.ndarray:
-    """``a`` (numpy or MLX) as a C-contiguous ``dtype`` array (read in place when it is one)."""
-    return np.ascontiguousarray(np.asarray(mx.stop_gradient(a) if isinstance(a, mx.array) else a), dtype=dtype)
-
-
 def _numpy_in(a, dtype, name: str, size: int) -> np.ndarray:
     """``_contiguous(a, dtype)``, which must hold ``size`` elements."""
     a = _contiguous(a, dtype)
