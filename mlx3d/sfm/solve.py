@@ -44,8 +44,12 @@ failed without it:
   went to pairs that do not overlap, which run every trial; on a 50-photo
   orbit this took matching from 37 s to 26 s with the same 454 pairs and
   the same inliers kept;
-- fixed random seeds (matching's RANSAC and the mapper): solves of the same
-  photos agree closely, though not bit for bit (threads finish in any order).
+- fixed random seeds (matching's RANSAC and the mapper) and the project's
+  thread count (:func:`mlx3d.render.raster_cpu.get_num_threads`: the cores
+  this process may use, or ``MLX3D_NUM_THREADS``), not every core of the
+  machine: solves of the same photos agree closely, though not bit for bit
+  (threads finish in any order; a 24-photo orbit's reprojection error
+  varied in its sixth digit at 8 threads, in its fifteenth at 2).
 
 Lens distortion is kept as COLMAP estimates it (``SIMPLE_RADIAL``; the
 renderer draws the same model, :mod:`mlx3d.cameras`' ``'opencv'``) unless it
@@ -321,6 +325,8 @@ def _write_model(pycolmap, rec, sparse: Path) -> tuple[str, np.ndarray]:
 
 
 def _mapping_options(pycolmap, seed: int, init_angle: float):
+    from mlx3d.render.raster_cpu import get_num_threads
+
     options = pycolmap.IncrementalPipelineOptions()
     options.random_seed = seed
     options.mapper.random_seed = seed
@@ -329,7 +335,7 @@ def _mapping_options(pycolmap, seed: int, init_angle: float):
     options.mapper.init_min_tri_angle = init_angle
     options.mapper.abs_pose_min_num_inliers = 15  # COLMAP 30 and 0.25: photos seen by few others still join
     options.mapper.abs_pose_min_inlier_ratio = 0.1
-    options.num_threads = os.cpu_count() or -1
+    options.num_threads = get_num_threads()
     return options
 
 
@@ -370,6 +376,8 @@ def solve_poses(photos, out, *, matching: str = "auto", max_image_size: int = 16
     A cancel (or Ctrl+C) raises KeyboardInterrupt and leaves nothing behind. ``out`` must not exist or be an
     empty folder.
     """
+    from mlx3d.render.raster_cpu import get_num_threads
+
     pycolmap = require_pycolmap()
     source, out = Path(photos), Path(out)
     names = list_photos(source)
@@ -402,7 +410,7 @@ def solve_poses(photos, out, *, matching: str = "auto", max_image_size: int = 16
         extraction = pycolmap.FeatureExtractionOptions()
         extraction.max_image_size = int(max_image_size)
         extraction.sift.peak_threshold = SIFT_PEAK_THRESHOLD
-        extraction.num_threads = os.cpu_count() or -1
+        extraction.num_threads = get_num_threads()
         single = len(set(sizes)) == 1
         done = 0
         for chunk in _chunks(names, PROGRESS_STEPS):
@@ -422,6 +430,8 @@ def solve_poses(photos, out, *, matching: str = "auto", max_image_size: int = 16
         verification = pycolmap.TwoViewGeometryOptions()
         verification.ransac.random_seed = seed  # the same photos give the same pairs, and so the same cameras
         verification.ransac.max_num_trials = VERIFICATION_MAX_TRIALS
+        matcher = pycolmap.FeatureMatchingOptions()
+        matcher.num_threads = get_num_threads()
         pairs = image_pairs(names, kind)
         pairing = pycolmap.ImportedPairingOptions()
         pairing.match_list_path = str(scratch / "pairs.txt")
@@ -429,7 +439,7 @@ def solve_poses(photos, out, *, matching: str = "auto", max_image_size: int = 16
         for chunk in _chunks(pairs, PROGRESS_STEPS):
             Path(pairing.match_list_path).write_text("".join(f"{a} {b}\n" for a, b in chunk), encoding="utf-8")
             _run_stage(pycolmap, "matching", lambda token: pycolmap.match_image_pairs(
-                database, pairing_options=pairing, verification_options=verification, device=pycolmap.Device.cpu,
+                database, matching_options=matcher, pairing_options=pairing, verification_options=verification, device=pycolmap.Device.cpu,
                 cancellation_token=token), done, len(pairs), progress, should_stop)
             done += len(chunk)
         if progress is not None:
