@@ -32,7 +32,8 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[2]
-SOURCES = ["api.cpp", "sh.cpp", "statistics.cpp", "knn.cpp", "knn_api.cpp"]
+#: Every .cpp file in this folder is part of the library.
+SOURCES = sorted(p.name for p in HERE.glob("*.cpp"))
 FLAGS = ["-std=c++17", "-O3", "-ffp-contract=off", "-fno-math-errno", "-fvisibility=hidden", "-Wall", "-Wno-psabi"]
 #: zig target triples; None: the host compiler.
 TARGETS = {"linux-x64": None, "windows-x64": "x86_64-windows-gnu", "linux-arm64": "aarch64-linux-gnu.2.17",

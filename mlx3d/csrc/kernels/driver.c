@@ -120,6 +120,10 @@ static int call(library_t lib, const char* name, Arg* args, uint32_t nargs) {
     return ((statistics_t)fn)((const uint8_t*)args[0].data, F(1), (const int32_t*)args[2].data, I(3), X(4), X(5), (double*)args[6].data,
                               (double*)args[7].data, (double*)args[8].data, (int)I(9));
   }
+  /* ---- rasterizer ---- */
+  /* ---- projection and tile binning ---- */
+  /* ---- photometric loss ---- */
+  /* ---- optimizer and activations ---- */
   fail("no call of that function is known to the driver");
   return -1;
 }

@@ -72,6 +72,14 @@ MLX3D_API int mlx3d_knn_order(const void* tree, int64_t* order);
 MLX3D_API int mlx3d_knn_query(const void* tree, const float* queries, int64_t m, int k, const int64_t* self_index, int output,
                               int threads, int64_t* out_index, float* out_dist);
 
+/* ---- rasterizer (raster.cpp) ---- */
+
+/* ---- projection and tile binning (projection.cpp, binning.cpp) ---- */
+
+/* ---- photometric loss (photometric.cpp) ---- */
+
+/* ---- optimizer and activations (adam.cpp, activation.cpp, affine.cpp) ---- */
+
 #ifdef __cplusplus
 }
 #endif
