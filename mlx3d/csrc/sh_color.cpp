@@ -30,11 +30,6 @@ using namespace nb::literals;
 namespace mlx3d {
 namespace {
 
-// The kernel's C entry points (kernels/sh.cpp) report failures by return code and message.
-void check_call(int rc) {
-  if (rc != 0) throw std::runtime_error(mlx3d_last_error());
-}
-
 // The 1 or 2 coefficient blocks of `inputs` (then means, centre): their pointers and coefficient counts.
 struct ShBlocks {
   const float* block[2] = {nullptr, nullptr};

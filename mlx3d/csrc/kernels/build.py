@@ -28,12 +28,16 @@ import os
 import shutil
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[2]
 #: Every .cpp file in this folder is part of the library.
 SOURCES = sorted(p.name for p in HERE.glob("*.cpp"))
+#: With GCC, per file: the rasterizer's tile kernels are scheduled before register allocation too, which
+#: interleaves their independent exp chains (the same arithmetic in another order; as CMakeLists.txt).
+GCC_FLAGS = {"raster.cpp": ["-fschedule-insns", "-fsched-pressure"]}
 FLAGS = ["-std=c++17", "-O3", "-ffp-contract=off", "-fno-math-errno", "-fvisibility=hidden", "-Wall", "-Wno-psabi"]
 #: zig target triples; None: the host compiler.
 TARGETS = {"linux-x64": None, "windows-x64": "x86_64-windows-gnu", "linux-arm64": "aarch64-linux-gnu.2.17",
@@ -80,11 +84,18 @@ def build(platform: str, out: Path, driver: bool = False, cxx: str | None = None
     if platform == "macos-arm64":
         link += [f"-Wl,-install_name,@rpath/{lib.name}"]
     elif platform != "windows-x64":  # Linux: the API alone (std:: templates would otherwise be exported too)
-        link += ["-fPIC", "-pthread", f"-Wl,--version-script={HERE / 'exports.map'}"]
+        link += ["-pthread", f"-Wl,--version-script={HERE / 'exports.map'}"]
     if platform == "linux-x64":  # the C++ runtime inside: the library needs only glibc, whatever the host ships
         link += ["-static-libstdc++", "-static-libgcc", "-Wl,--exclude-libs,ALL"]  # and none of its symbols exported
-    cmd = [*cxx_cmd, *FLAGS, *link, *(str(HERE / s) for s in SOURCES), "-o", str(lib)]
-    subprocess.run(cmd, check=True)
+    gcc = TARGETS[platform] is None and "clang" not in Path(cxx_cmd[0]).name
+    pic = [] if platform == "windows-x64" else ["-fPIC"]
+    with tempfile.TemporaryDirectory(prefix="mlx3d-kernels-") as tmp:
+        objects = []
+        for source in SOURCES:  # one by one, for per-file flags (zig caches each object by its inputs)
+            objects.append(str(Path(tmp) / (source + ".o")))
+            extra = GCC_FLAGS.get(source, []) if gcc else []
+            subprocess.run([*cxx_cmd, *FLAGS, *extra, *pic, "-c", str(HERE / source), "-o", objects[-1]], check=True)
+        subprocess.run([*cxx_cmd, *link, *objects, "-o", str(lib)], check=True)
     if driver:
         exe = out / driver_name(platform)
         libs = [] if platform in ("windows-x64", "macos-arm64") else ["-ldl"]

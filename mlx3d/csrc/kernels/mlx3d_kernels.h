@@ -73,12 +73,92 @@ MLX3D_API int mlx3d_knn_query(const void* tree, const float* queries, int64_t m,
                               int threads, int64_t* out_index, float* out_dist);
 
 /* ---- rasterizer (raster.cpp) ---- */
+/* The 3DGS tile rasterizer (raster.cpp; per-pixel rules: raster_math.h, docs/guides/rendering.md): N Gaussians
+ * means2d (N, 2) pixels, conics (N, 3) (a, b, c of the inverse 2D covariance [[a, b], [b, c]], 1/pixels^2),
+ * features (N, C), opacities (N,), binned into tiles of tile_size pixels: tile_offsets int32 (tiles + 1,), tile
+ * t's entries flatten_ids[tile_offsets[t] .. tile_offsets[t + 1]) (int32 Gaussian indices, front to back; M
+ * entries), tiles = ceil(W / tile_size) ceil(H / tile_size) in row-major order. Composited front to back per
+ * pixel: accum (H, W, C), alpha (H, W) = 1 - final_T, last int32 (H, W) (1 + the position in the tile's range
+ * of the last Gaussian that contributed, 0 for none), final_T (H, W). background (C,) or NULL: accum += (1 -
+ * alpha) background. The results do not depend on threads; the backward pass's, in their last bits, on the
+ * lane width (mlx3d_rasterizer_lanes). */
+MLX3D_API int mlx3d_rasterize_forward(const float* means2d, const float* conics, const float* features, const float* opacities,
+                                      const int32_t* tile_offsets, const int32_t* flatten_ids, int64_t n, int channels, int64_t m,
+                                      int width, int height, int tile_size, const float* background, int threads, float* accum,
+                                      float* alpha, int32_t* last, float* final_T);
+/* The forward pass composited in depth order with a per-pixel surface layer (forward only): depths (N,) the
+ * Gaussians' camera z (the binning's sort key), surface_color (H, W, C) premultiplied, surface_alpha (H, W),
+ * surface_depth (H, W) camera z (+inf: behind every Gaussian). */
+MLX3D_API int mlx3d_rasterize_forward_surface(const float* means2d, const float* conics, const float* features,
+                                              const float* opacities, const int32_t* tile_offsets, const int32_t* flatten_ids,
+                                              int64_t n, int channels, int64_t m, int width, int height, int tile_size,
+                                              const float* depths, const float* surface_color, const float* surface_alpha,
+                                              const float* surface_depth, int threads, float* accum, float* alpha, int32_t* last,
+                                              float* final_T);
+/* The forward pass's vector-Jacobian product: from its inputs, its last and final_T, and dL/daccum d_accum
+ * (H, W, C), dL/dalpha d_alpha (H, W) (and the forward's background, or NULL): d_means2d (N, 2), d_conics (N, 3),
+ * d_features (N, C), d_opacities (N,). Summed per tile entry, then per Gaussian in flatten_ids order: the same
+ * bits for any thread count. */
+MLX3D_API int mlx3d_rasterize_backward(const float* means2d, const float* conics, const float* features, const float* opacities,
+                                       const int32_t* tile_offsets, const int32_t* flatten_ids, int64_t n, int channels, int64_t m,
+                                       int width, int height, int tile_size, const int32_t* last, const float* final_T,
+                                       const float* d_accum, const float* d_alpha, const float* background, int threads,
+                                       float* d_means2d, float* d_conics, float* d_features, float* d_opacities);
+/* Pixels the tile kernels run at once on this CPU: 8 (AVX2, x86-64 Linux builds), 4 (SSE2, NEON), 1 (scalar).
+ * MLX3D_RASTER_ISA=baseline in the environment forces the baseline variant; MLX3D_RASTER_CULL=0 turns off the
+ * sub-tile culling (the same results; for tests). */
+MLX3D_API int mlx3d_rasterizer_lanes(void);
 
 /* ---- projection and tile binning (projection.cpp, binning.cpp) ---- */
 
 /* ---- photometric loss (photometric.cpp) ---- */
 
+/* The 3DGS training loss of a render x against a photo y, float32 (H, W, C) each (colour values, data range 1),
+ * and its gradient with respect to x:
+ *   loss = (1 - lambda) L1 + lambda (1 - SSIM),  L1 = sum_p w_p mean_c |x - y| / S,  SSIM = sum_p w_p mean_c s / S,
+ * S = max(sum_p w_p, 1e-12), w = weights (H, W) or NULL (all 1); s the SSIM map of 3DGS: per channel, mu, E[x^2],
+ * E[y^2], E[xy] from the zero-padded "same" filter with outer(taps, taps) (taps (ntaps,), ntaps odd, symmetric),
+ * C1 = 0.01^2, C2 = 0.03^2. Writes loss (1,) and grad (H, W, C) = dloss/dx; the loss is symmetric, so dloss/dy is
+ * the call with x and y swapped. lambda in [0, 1]; H, W, C >= 1. scratch: 8 H W C floats of working memory (their
+ * contents of no value before or after), or NULL to have the call allocate it. Per element in float32; the weights'
+ * sum, each row's weighted L1 and SSIM sums and their sums over rows (in row order) in float64, so the results are
+ * the same for any thread count (mlx3d.training.metrics' photometric_loss, float32 sums there). */
+MLX3D_API int mlx3d_photometric_loss(const float* x, const float* y, const float* weights, int64_t h, int64_t w, int64_t c,
+                                     float lambda, const float* taps, int64_t ntaps, int threads, float* scratch, float* loss,
+                                     float* grad);
+/* The mean squared error of x (clipped to [0, 1] first when clip != 0) against y, float32 (H, W, C) each:
+ *   out (1,) = sum_p w_p mean_c (x - y)^2 / max(sum_p w_p, 1e-12),
+ * w = weights (H, W) or NULL (all 1). Each pixel's channel sum in float32; the weighted sums per row, then over rows
+ * in row order, in float64, so the result is the same for any thread count. A metric (the per-step PSNR): no
+ * gradient. */
+MLX3D_API int mlx3d_mse(const float* x, const float* y, const float* weights, int64_t h, int64_t w, int64_t c, int clip, int threads,
+                        float* out);
+
 /* ---- optimizer and activations (adam.cpp, activation.cpp, affine.cpp) ---- */
+
+/* One Adam step on n float32 elements is three calls: mlx3d_adam_moment for m' (squared 0, beta = b1), again
+ * for v' (squared 1, beta = b2), then mlx3d_adam_param for p'. In float32, the scalars rounded to float32 first
+ * (1 - beta computed in double), as MLX rounds Python scalars that meet a float32 array:
+ *   out = beta x + (1 - beta) g   (squared 0),   out = beta x + (1 - beta) g²   (squared 1);
+ *   p_out = p - lr (m / c1) / (sqrt(v / c2) + eps),   c1 = 1 - b1^t, c2 = 1 - b2^t (> 0): the bias corrections.
+ * All (n,). In place allowed: out may be x, and p_out may be p (the moment or parameter updated in place, as
+ * mlx3d._core does where MLX donates the buffer); an output may not otherwise overlap an input. */
+MLX3D_API int mlx3d_adam_moment(const float* g, const float* x, int64_t n, double beta, int squared, int threads, float* out);
+MLX3D_API int mlx3d_adam_param(const float* p, const float* m, const float* v, int64_t n, double lr, double eps, double c1,
+                               double c2, int threads, float* p_out);
+/* *finite = 1 when no element of x (n,) is NaN or infinite (exponent bits all ones), else 0; 1 when n = 0. */
+MLX3D_API int mlx3d_all_finite(const float* x, int64_t n, int threads, uint8_t* finite);
+/* y = e^x and y = 1 / (1 + e^-x), elementwise over x (n,) float32, bit for bit MLX's CPU mx.exp / mx.sigmoid
+ * (MLX's scalar algorithm: a range reduction to 2^i and a degree-6 polynomial with fma; x > 88: inf,
+ * x < -88: 0, NaN stays NaN). The gradients are left to MLX (cot y and cot y (1 - y)). */
+MLX3D_API int mlx3d_exp(const float* x, int64_t n, int threads, float* y);
+MLX3D_API int mlx3d_sigmoid(const float* x, int64_t n, int threads, float* y);
+/* Covariances Σ = R(q) diag(e^log_scales)² R(q)ᵀ of n Gaussians mapped by a linear map L (3, 3) float64,
+ * row-major: L Σ Lᵀ re-decomposed (one-sided Jacobi SVD of L R diag(s), in double) into unit quaternions
+ * quats_out (n, 4) (w, x, y, z; w >= 0) and log scales log_scales_out (n, 3), sorted descending (natural log
+ * of the scale; a vanished scale gives log of DBL_MIN). quats (n, 4) need not be unit; log_scales (n, 3). */
+MLX3D_API int mlx3d_affine_covariances(const double* linear, const float* quats, const float* log_scales, int64_t n, int threads,
+                                       float* quats_out, float* log_scales_out);
 
 #ifdef __cplusplus
 }
