@@ -1,17 +1,13 @@
-// EWA projection of 3D Gaussians as CPU MLX primitives, threaded over Gaussians.
+// EWA projection of 3D Gaussians as CPU MLX primitives: the kernel library's mlx3d_project_ewa and
+// mlx3d_project_ewa_backward (kernels/projection.cpp, mlx3d_kernels.h) run on MLX arrays.
 //
-// Forward: means (N,3), quats (N,4), scales (N,3) -> means2d (N,2), conics (N,3), radii (N,)
-// int32, depths (N,), compensation (N,). Backward: the gradients of means, quats and scales
-// from those of means2d, conics, depths and compensation (radii have none). The per-Gaussian
-// math is projection_math.h; each Gaussian is computed by one thread from its own inputs, several
-// at a time (one per vector lane, each lane the float operations of one Gaussian alone), so
-// results are bitwise identical for any thread count. The pure-MLX reference is
-// mlx3d.render.projection.project_ewa(backend='reference').
+// Forward: means (N,3), quats (N,4), scales (N,3) -> means2d (N,2), conics (N,3), radii (N,) int32,
+// depths (N,), compensation (N,). Backward: the gradients of means, quats and scales from those of
+// means2d, conics, depths and compensation (radii have none).
 #include <nanobind/nanobind.h>
 #include <nanobind/stl/vector.h>
 
 #include <algorithm>
-#include <cmath>
 #include <cstdint>
 #include <memory>
 #include <stdexcept>
@@ -24,21 +20,6 @@
 #include "mlx/primitives.h"
 #include "primitive_util.h"
 
-// Lane-wise sqrt and ceil for projection_math.h (declared before it, as its templates look them up);
-// both correctly rounded in every variant, and the file is built without FMA contraction, so the
-// results do not depend on the lanes.
-#if defined(MLX3D_VECTOR_LANES)
-MLX3D_LANES_INLINE mlx3d::Lanes pm_sqrt(mlx3d::Lanes x) {
-  for (int j = 0; j < mlx3d::kLanes; ++j) x[j] = __builtin_sqrtf(x[j]);
-  return x;
-}
-MLX3D_LANES_INLINE mlx3d::Lanes pm_ceil(mlx3d::Lanes x) {
-  for (int j = 0; j < mlx3d::kLanes; ++j) x[j] = __builtin_ceilf(x[j]);
-  return x;
-}
-#endif
-#include "projection_math.h"
-
 namespace nb = nanobind;
 namespace mx = mlx::core;
 using namespace nb::literals;
@@ -46,90 +27,34 @@ using namespace nb::literals;
 namespace mlx3d {
 namespace {
 
-constexpr int kBlock = 4096;  // at least this many Gaussians per thread
+// The camera as mlx3d_project_ewa takes it.
+struct EwaCamera {
+  float viewmat[16];  // world-to-camera, row-major
+  float fx, fy, cx, cy;
+  int width, height;
+  float near_z, far_z, blur;
+  int antialias;
 
-// Field f of `width` floats per Gaussian, of Gaussians [i0, i0 + count) and the last one repeated, as lanes.
-MLX3D_LANES_INLINE Lanes gather(const float* a, int width, int f, int64_t i0, int count) {
-  alignas(32) float t[kLanes];
-  for (int j = 0; j < kLanes; ++j) t[j] = a[(i0 + std::min(j, count - 1)) * width + f];
-  return lanes_at(t);
-}
-
-// Writes the first `count` lanes of v to field f of Gaussians [i0, i0 + count).
-MLX3D_LANES_INLINE void scatter(float* a, int width, int f, int64_t i0, int count, Lanes v) {
-  alignas(32) float t[kLanes];
-  put_lanes(t, v);
-  for (int j = 0; j < count; ++j) a[(i0 + j) * width + f] = t[j];
-}
-
-MLX3D_LANES_INLINE PmGaussianOf<Lanes> gaussians_at(const float* means, const float* quats, const float* scales, int64_t i0, int count) {
-  PmGaussianOf<Lanes> g;
-  for (int k = 0; k < 3; ++k) g.mean[k] = gather(means, 3, k, i0, count), g.scale[k] = gather(scales, 3, k, i0, count);
-  for (int k = 0; k < 4; ++k) g.quat[k] = gather(quats, 4, k, i0, count);
-  return g;
-}
-
-struct ForwardArrays {
-  const float *means, *quats, *scales;
-  float *means2d, *conics, *depths, *compensation;
-  int32_t* radii;
-};
-
-struct BackwardArrays {
-  const float *means, *quats, *scales;
-  const float *d_means2d, *d_conics, *d_depths, *d_compensation;  // (N,2), (N,3), (N,), (N,)
-  float *d_means, *d_quats, *d_scales;
-};
-
-MLX3D_AVX2_CLONES void forward_range(const PmCamera& cam, const ForwardArrays& a, int64_t lo, int64_t hi) {
-  for (int64_t i0 = lo; i0 < hi; i0 += kLanes) {
-    const int count = static_cast<int>(std::min<int64_t>(kLanes, hi - i0));
-    const PmStateOf<Lanes> s = pm_forward(cam, gaussians_at(a.means, a.quats, a.scales, i0, count));
-    for (int k = 0; k < 2; ++k) scatter(a.means2d, 2, k, i0, count, s.means2d[k]);
-    for (int k = 0; k < 3; ++k) scatter(a.conics, 3, k, i0, count, s.conic[k]);
-    scatter(a.depths, 1, 0, i0, count, s.depth);
-    scatter(a.compensation, 1, 0, i0, count, s.compensation);
-    alignas(32) float radius[kLanes];
-    put_lanes(radius, s.radius);
-    for (int j = 0; j < count; ++j) a.radii[i0 + j] = static_cast<int32_t>(radius[j]);
+  bool operator==(const EwaCamera& o) const {
+    for (int i = 0; i < 12; ++i)  // the last row is not read
+      if (viewmat[i] != o.viewmat[i]) return false;
+    return fx == o.fx && fy == o.fy && cx == o.cx && cy == o.cy && width == o.width && height == o.height &&
+           near_z == o.near_z && far_z == o.far_z && blur == o.blur && antialias == o.antialias;
   }
-}
-
-MLX3D_AVX2_CLONES void backward_range(const PmCamera& cam, const BackwardArrays& a, int64_t lo, int64_t hi) {
-  for (int64_t i0 = lo; i0 < hi; i0 += kLanes) {
-    const int count = static_cast<int>(std::min<int64_t>(kLanes, hi - i0));
-    const PmGaussianOf<Lanes> g = gaussians_at(a.means, a.quats, a.scales, i0, count);
-    const PmStateOf<Lanes> s = pm_forward(cam, g);
-    const PmGradOf<Lanes> d = pm_backward(cam, g, s, gather(a.d_means2d, 2, 0, i0, count), gather(a.d_means2d, 2, 1, i0, count),
-                                          gather(a.d_conics, 3, 0, i0, count), gather(a.d_conics, 3, 1, i0, count),
-                                          gather(a.d_conics, 3, 2, i0, count), gather(a.d_depths, 1, 0, i0, count),
-                                          gather(a.d_compensation, 1, 0, i0, count));
-    for (int k = 0; k < 3; ++k) scatter(a.d_means, 3, k, i0, count, d.mean[k]), scatter(a.d_scales, 3, k, i0, count, d.scale[k]);
-    for (int k = 0; k < 4; ++k) scatter(a.d_quats, 4, k, i0, count, d.quat[k]);
-  }
-}
+};
 
 class ProjectBase : public CpuPrimitive {
  public:
-  ProjectBase(mx::Stream stream, PmCamera cam, int num_threads)
+  ProjectBase(mx::Stream stream, EwaCamera cam, int num_threads)
       : CpuPrimitive(stream, "Apple GPUs use the MLX reference projection"), cam_(cam), num_threads_(num_threads) {}
 
   bool is_equivalent(const mx::Primitive& other) const override {
     const auto* o = dynamic_cast<const ProjectBase*>(&other);
-    if (!o || std::string(o->name()) != name() || o->num_threads_ != num_threads_ || o->cam_.antialias != cam_.antialias) return false;
-    const float* a = &cam_.rot[0];
-    const float* b = &o->cam_.rot[0];
-    for (int i = 0; i < 9; ++i)
-      if (a[i] != b[i]) return false;
-    for (int i = 0; i < 3; ++i)
-      if (cam_.trans[i] != o->cam_.trans[i]) return false;
-    return cam_.fx == o->cam_.fx && cam_.fy == o->cam_.fy && cam_.cx == o->cam_.cx && cam_.cy == o->cam_.cy &&
-           cam_.width == o->cam_.width && cam_.height == o->cam_.height && cam_.near_z == o->cam_.near_z &&
-           cam_.far_z == o->cam_.far_z && cam_.blur == o->cam_.blur;
+    return o && std::string(o->name()) == name() && o->num_threads_ == num_threads_ && o->cam_ == cam_;
   }
 
  protected:
-  PmCamera cam_;
+  EwaCamera cam_;
   int num_threads_;
 };
 
@@ -141,12 +66,14 @@ class ProjectEwaBackward : public ProjectBase {
   // outputs: dL/dmeans, dL/dquats, dL/dscales
   void eval_cpu(const std::vector<mx::array>& inputs, std::vector<mx::array>& outputs) override {
     auto& encoder = prepare_outputs(*this, inputs, outputs);
-    const BackwardArrays a{inputs[0].data<float>(),  inputs[1].data<float>(),  inputs[2].data<float>(),  inputs[3].data<float>(),
-                           inputs[4].data<float>(),  inputs[5].data<float>(),  inputs[6].data<float>(),  outputs[0].data<float>(),
-                           outputs[1].data<float>(), outputs[2].data<float>()};
+    const float* in[7];
+    for (int k = 0; k < 7; ++k) in[k] = inputs[k].data<float>();
+    float *d_means = outputs[0].data<float>(), *d_quats = outputs[1].data<float>(), *d_scales = outputs[2].data<float>();
     const int64_t n = inputs[0].shape(0);
-    encoder.dispatch([a, n, cam = cam_, threads = num_threads_]() {
-      parallel_blocks(n, threads, kBlock, [a, cam](int64_t lo, int64_t hi) { backward_range(cam, a, lo, hi); });
+    encoder.dispatch([=, c = cam_, threads = num_threads_]() {
+      check_call(mlx3d_project_ewa_backward(in[0], in[1], in[2], n, c.viewmat, c.fx, c.fy, c.cx, c.cy, c.width, c.height, c.near_z,
+                                            c.far_z, c.blur, c.antialias, in[3], in[4], in[5], in[6], threads, d_means, d_quats,
+                                            d_scales));
     });
   }
 
@@ -168,12 +95,14 @@ class ProjectEwaForward : public ProjectBase {
 
   void eval_cpu(const std::vector<mx::array>& inputs, std::vector<mx::array>& outputs) override {
     auto& encoder = prepare_outputs(*this, inputs, outputs);
-    const ForwardArrays a{inputs[0].data<float>(),  inputs[1].data<float>(),  inputs[2].data<float>(),
-                          outputs[0].data<float>(), outputs[1].data<float>(), outputs[3].data<float>(),
-                          outputs[4].data<float>(), outputs[2].data<int32_t>()};
+    const float *means = inputs[0].data<float>(), *quats = inputs[1].data<float>(), *scales = inputs[2].data<float>();
+    float *means2d = outputs[0].data<float>(), *conics = outputs[1].data<float>(), *depths = outputs[3].data<float>(),
+          *compensation = outputs[4].data<float>();
+    int32_t* radii = outputs[2].data<int32_t>();
     const int64_t n = inputs[0].shape(0);
-    encoder.dispatch([a, n, cam = cam_, threads = num_threads_]() {
-      parallel_blocks(n, threads, kBlock, [a, cam](int64_t lo, int64_t hi) { forward_range(cam, a, lo, hi); });
+    encoder.dispatch([=, c = cam_, threads = num_threads_]() {
+      check_call(mlx3d_project_ewa(means, quats, scales, n, c.viewmat, c.fx, c.fy, c.cx, c.cy, c.width, c.height, c.near_z, c.far_z,
+                                   c.blur, c.antialias, threads, means2d, conics, radii, depths, compensation));
     });
   }
 
@@ -216,14 +145,10 @@ std::vector<mx::array> project_ewa(const mx::array& means, const mx::array& quat
   check(viewmat.size() == 16, "viewmat must have 16 entries (4x4 row-major)");
   check(width >= 1 && height >= 1, "width and height must be >= 1");
   check(num_threads >= 0, "num_threads must be >= 0 (0 = all cores)");
-  PmCamera cam;
-  for (int i = 0; i < 3; ++i) {
-    for (int j = 0; j < 3; ++j) cam.rot[3 * i + j] = viewmat[4 * i + j];
-    cam.trans[i] = viewmat[4 * i + 3];
-  }
-  cam.fx = fx, cam.fy = fy, cam.cx = cx, cam.cy = cy;
-  cam.width = float(width), cam.height = float(height), cam.near_z = near_z, cam.far_z = far_z, cam.blur = blur;
-  cam.antialias = antialias ? 1 : 0;
+  EwaCamera cam;
+  std::copy(viewmat.begin(), viewmat.end(), cam.viewmat);
+  cam.fx = fx, cam.fy = fy, cam.cx = cx, cam.cy = cy, cam.width = width, cam.height = height;
+  cam.near_z = near_z, cam.far_z = far_z, cam.blur = blur, cam.antialias = antialias ? 1 : 0;
   auto s = mx::default_stream(mx::Device::cpu);
   std::vector<mx::array> inputs;
   for (const auto* a : {&means, &quats, &scales}) inputs.push_back(mx::contiguous(*a, false, s));
