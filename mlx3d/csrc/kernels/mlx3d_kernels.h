@@ -110,6 +110,24 @@ MLX3D_API int mlx3d_rasterize_backward(const float* means2d, const float* conics
 MLX3D_API int mlx3d_rasterizer_lanes(void);
 
 /* ---- projection and tile binning (projection.cpp, binning.cpp) ---- */
+/* EWA projection of N 3D Gaussians (projection_math.h; docs/guides/rendering.md): means (N, 3), quats (N, 4)
+ * (w, x, y, z, any norm), scales (N, 3) seen by a pinhole camera: viewmat (4, 4) world-to-camera row-major,
+ * focal lengths and principal point in pixels, the image's width and height, near and far planes (camera z),
+ * blur (pixels^2 added to the 2D covariance's diagonal), antialias (1: compensation = the opacity factor that
+ * keeps the blurred Gaussian's integral, else 1). Writes means2d (N, 2) pixels, conics (N, 3) (the inverse 2D
+ * covariance's a, b, c), radii int32 (N,) pixels (0: culled), depths (N,) camera z, compensation (N,). Each
+ * Gaussian from its own inputs alone: the same bits for any thread count. */
+MLX3D_API int mlx3d_project_ewa(const float* means, const float* quats, const float* scales, int64_t n, const float* viewmat,
+                                float fx, float fy, float cx, float cy, int width, int height, float near_z, float far_z, float blur,
+                                int antialias, int threads, float* means2d, float* conics, int32_t* radii, float* depths,
+                                float* compensation);
+/* Its vector-Jacobian product: from dL/dmeans2d (N, 2), dL/dconics (N, 3), dL/ddepths (N,), dL/dcompensation
+ * (N,), the gradients d_means (N, 3), d_quats (N, 4), d_scales (N, 3). */
+MLX3D_API int mlx3d_project_ewa_backward(const float* means, const float* quats, const float* scales, int64_t n,
+                                         const float* viewmat, float fx, float fy, float cx, float cy, int width, int height,
+                                         float near_z, float far_z, float blur, int antialias, const float* d_means2d,
+                                         const float* d_conics, const float* d_depths, const float* d_compensation, int threads,
+                                         float* d_means, float* d_quats, float* d_scales);
 
 /* ---- photometric loss (photometric.cpp) ---- */
 
