@@ -128,6 +128,19 @@ MLX3D_API int mlx3d_project_ewa_backward(const float* means, const float* quats,
                                          float near_z, float far_z, float blur, int antialias, const float* d_means2d,
                                          const float* d_conics, const float* d_depths, const float* d_compensation, int threads,
                                          float* d_means, float* d_quats, float* d_scales);
+/* Tile binning (binning.cpp): the (Gaussian, tile) intersections of N Gaussians, means2d (N, 2) pixels, radii (N,)
+ * pixels (<= 0: culled), depths (N,) camera z, in tiles of tile_size pixels over a width x height image; with
+ * conics (N, 3) and opacities (N,) (both or neither NULL) each extent is tightened to the box where alpha can
+ * reach 1/255. Writes tile_offsets int32 (tiles + 1,) and returns in *flatten_ids a new int32 array of the *m
+ * entries, sorted by tile, then depth, then index (NULL when *m = 0; free it with mlx3d_free). The same for any
+ * thread count. Fails when there are more than 2^31 entries. */
+MLX3D_API int mlx3d_bin_tiles(const float* means2d, const float* radii, const float* depths, int64_t n, int width, int height,
+                              int tile_size, const float* conics, const float* opacities, int threads, int32_t* tile_offsets,
+                              int32_t** flatten_ids, int64_t* m);
+/* The half-extents (N, 2) pixels that mlx3d_bin_tiles gives each Gaussian. */
+MLX3D_API int mlx3d_tile_extents(const float* radii, const float* conics, const float* opacities, int64_t n, float* extents);
+/* Frees an array the library returned (mlx3d_bin_tiles' flatten_ids); NULL is ignored. */
+MLX3D_API void mlx3d_free(void* block);
 
 /* ---- photometric loss (photometric.cpp) ---- */
 
