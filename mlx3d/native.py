@@ -1,15 +1,24 @@
-"""Access to the compiled extension ``mlx3d._core``.
+"""Access to the compiled CPU kernels: the extension ``mlx3d._core``, or the kernel library in its place.
 
 This is the only module that imports ``mlx3d._core``; everything else calls
-:func:`core`. The import happens on first use (so pure-Python parts of mlx3d
-work without the extension) and raises :class:`~mlx3d.errors.ExtensionBuildError`
-with build instructions when the extension is missing or cannot be loaded.
+:func:`core`, which returns the module whose functions the CPU backend calls
+(:data:`CPU_FUNCTIONS`). That is ``_core`` (MLX primitives over the kernel
+library, built for Linux x86-64) where it imports, and otherwise the kernel
+library itself through ctypes (:mod:`mlx3d.kernel_library`, which offers every
+one of those functions under the same name, signature and meaning: Windows,
+Linux arm64, macOS' CPU path). The import happens on first use (so pure-Python
+parts of mlx3d work without either) and raises
+:class:`~mlx3d.errors.ExtensionBuildError` with both reasons when neither loads.
 
-``_core`` is an accelerator: every public operation also runs without it
+The kernels are an accelerator: every public operation also runs without them
 (backend 'mlx', chosen by ``resolve_backend('auto')`` when :func:`available`
-is False). Setting the environment variable ``MLX3D_NO_CORE=1`` makes
-:func:`core` fail as if the extension were missing, which forces that path
-(the test suite's ``make test-pure`` entry runs under it).
+is False). Environment:
+
+- ``MLX3D_NO_CORE=1`` makes :func:`core` fail as if no kernels were there,
+  which forces the pure MLX path (the test suite's ``make test-pure`` entry);
+- ``MLX3D_CPU_KERNELS=library`` skips ``_core`` and uses the kernel library
+  (as on the platforms without ``_core``; ``make test-library`` runs the
+  suite so); ``auto`` (the default) prefers ``_core``.
 """
 
 from __future__ import annotations
@@ -20,9 +29,14 @@ from types import ModuleType
 
 from mlx3d.errors import ExtensionBuildError
 
-__all__ = ["core", "available", "host_array", "BUILD_HINT", "DISABLE_ENV"]
+__all__ = ["core", "available", "host_array", "BUILD_HINT", "DISABLE_ENV", "KERNELS_ENV", "CPU_FUNCTIONS"]
 
 DISABLE_ENV = "MLX3D_NO_CORE"
+KERNELS_ENV = "MLX3D_CPU_KERNELS"
+#: What the CPU backend calls on :func:`core`'s module (each in mlx3d._core and in mlx3d.kernel_library).
+CPU_FUNCTIONS = ("project_ewa", "bin_tiles", "tile_extents", "rasterize_forward", "rasterize_forward_surface",
+                 "rasterizer_simd_lanes", "sh_colors", "activation", "mse", "photometric_loss", "adam_step", "all_finite",
+                 "add_screen_statistics", "affine_covariances", "KDTree")
 
 BUILD_HINT = (
     "Build it from the repository root: install the build requirements "
@@ -43,17 +57,18 @@ def disabled() -> bool:
 
 
 def core() -> ModuleType:
-    """Returns the compiled module ``mlx3d._core``, importing it on first call.
+    """Returns the module of the compiled CPU kernels: ``mlx3d._core``, or else :mod:`mlx3d.kernel_library`
+    (see the module doc), loading it on first call.
 
     Raises:
-        ExtensionBuildError: the extension is not built, was built against a
-            different Python / MLX, or its shared libraries cannot be loaded.
-            The message includes the original import error. Also raised
-            while ``MLX3D_NO_CORE`` is set.
+        ExtensionBuildError: neither loads (``_core`` is not built, was built against a different Python / MLX,
+            or its shared libraries cannot be loaded; the library is missing or of another version). The message
+            includes both reasons. Also raised while ``MLX3D_NO_CORE`` is set.
     """
     global _core, _failure
     if disabled():
-        raise ExtensionBuildError(f"mlx3d._core is turned off by {DISABLE_ENV}={os.environ[DISABLE_ENV]!r}; unset it to use the compiled kernels")
+        raise ExtensionBuildError(f"the compiled CPU kernels (mlx3d._core and the kernel library) are turned off by "
+                                  f"{DISABLE_ENV}={os.environ[DISABLE_ENV]!r}; unset it to use them")
     if _core is not None:
         return _core
     with _lock:
@@ -73,20 +88,33 @@ def core() -> ModuleType:
                 "`pip install mlx==0.32.4` (macOS)."
             )
             raise _failure from exc
-        try:
-            from mlx3d import _core as module
-        except ImportError as exc:
-            _failure = ExtensionBuildError(
-                "The compiled extension mlx3d._core is missing or broken "
-                f"({type(exc).__name__}: {exc}). {BUILD_HINT}"
-            )
-            raise _failure from exc
-        _core = module
-        return module
+        choice = os.environ.get(KERNELS_ENV, "auto").strip() or "auto"
+        if choice not in ("auto", "library"):
+            raise ExtensionBuildError(f"{KERNELS_ENV} must be 'auto' or 'library', got {choice!r}")
+        reason = f"mlx3d._core is skipped ({KERNELS_ENV}=library)"
+        if choice == "auto":
+            try:
+                from mlx3d import _core as module
+            except ImportError as exc:
+                reason = f"mlx3d._core is missing or broken ({type(exc).__name__}: {exc})"
+            else:
+                _core = module
+                return module
+        from mlx3d import kernel_library
+
+        if kernel_library.available() and all(hasattr(kernel_library, name) for name in CPU_FUNCTIONS):
+            _core = kernel_library
+            return kernel_library
+        _failure = ExtensionBuildError(
+            f"No compiled CPU kernels: {reason}, and {kernel_library.failure() or 'the kernel library lacks functions'}. "
+            f"{BUILD_HINT} (or `make kernels` for the kernel library alone)"
+        )
+        raise _failure
 
 
 def available() -> bool:
-    """True when :func:`core` succeeds (never raises; False while ``MLX3D_NO_CORE`` is set)."""
+    """True when :func:`core` succeeds: compiled CPU kernels are there (never raises; False while ``MLX3D_NO_CORE``
+    is set)."""
     try:
         core()
     except ExtensionBuildError:

@@ -324,21 +324,48 @@ def test_extension_links_mlx():
     np.testing.assert_array_equal(np.array(out), [3.0, 6.0])
 
 
-def test_missing_extension_raises_build_error(monkeypatch):
+def _without_core(monkeypatch, library):
+    """native.core() loads afresh, with mlx3d._core unimportable and the kernel library at ``library``."""
     import mlx3d
+    from mlx3d import kernel_library
 
     monkeypatch.delenv(native.DISABLE_ENV, raising=False)
+    monkeypatch.delenv(native.KERNELS_ENV, raising=False)
     monkeypatch.setattr(native, "_failure", None)  # restored afterwards: the real import state is kept
     monkeypatch.setattr(native, "_core", None)
     monkeypatch.delattr(mlx3d, "_core", raising=False)
     monkeypatch.setitem(sys.modules, "mlx3d._core", None)
+    monkeypatch.setenv(kernel_library.PATH_ENV, str(library))
+    monkeypatch.setattr(kernel_library, "_lib", None)
+    monkeypatch.setattr(kernel_library, "_failure", None)
+
+
+def test_missing_extension_raises_build_error(monkeypatch, tmp_path):
+    _without_core(monkeypatch, tmp_path / "nowhere.so")
     with pytest.raises(ExtensionBuildError) as info:
         native.core()
     msg = str(info.value)
-    assert "mlx3d._core is missing or broken" in msg
-    assert "pip install --no-build-isolation -e ." in msg
+    assert "mlx3d._core is missing or broken" in msg and "nowhere.so does not exist" in msg
+    assert "pip install --no-build-isolation -e ." in msg and "make kernels" in msg
     assert isinstance(info.value, ImportError)
     assert not native.available()
+
+
+def test_without_the_extension_the_kernel_library_serves(monkeypatch):
+    """Where mlx3d._core is missing (Windows, Linux arm64, macOS) the kernel library is the CPU kernels' module,
+    with every function the CPU backend calls."""
+    from mlx3d import kernel_library
+
+    path = kernel_library.library_path()
+    if not path.is_file():
+        pytest.skip(f"{path} is not built (make kernels)")
+    _without_core(monkeypatch, path)
+    assert native.core() is kernel_library and native.available()
+    assert all(callable(getattr(native.core(), name)) for name in native.CPU_FUNCTIONS)
+    monkeypatch.setenv(native.KERNELS_ENV, "somewhere")
+    monkeypatch.setattr(native, "_core", None)
+    with pytest.raises(ExtensionBuildError, match="MLX3D_CPU_KERNELS must be 'auto' or 'library', got 'somewhere'"):
+        native.core()
 
 
 def test_progress_callback(rng):
