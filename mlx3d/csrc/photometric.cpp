@@ -1,32 +1,24 @@
-// The 3DGS training loss (1 - λ) L1 + λ (1 - SSIM) of an (H,W,C) render against a photo, and its
-// gradient with respect to the render, as one CPU MLX primitive threaded over image rows.
+// The 3DGS training loss (1 - λ) L1 + λ (1 - SSIM) of an (H,W,C) render against a photo with its gradient,
+// and the per-step MSE, as CPU MLX primitives: the kernel library's mlx3d_photometric_loss / mlx3d_mse
+// (kernels/photometric.cpp, mlx3d_kernels.h) run on MLX arrays.
 //
-// SSIM as mlx3d.training.metrics (the 3DGS definition): a separable Gaussian window (the taps
-// given), zero-padded "same" filtering of x, y, x², y², xy per channel, C1 = 0.01², C2 = 0.03²,
-// the map averaged over channels; with a mask w (H,W) both terms are w-weighted means over pixels.
-// The gradient follows from S = A1 A2 / (B1 B2) (A1 = 2 μx μy + C1, A2 = 2 σxy + C2, B1 = μx² +
-// μy² + C1, B2 = σx² + σy² + C2): the filter is self-adjoint, so
-//   dL/dx = G*(g ∂S/∂μx) + 2x G*(g ∂S/∂E[x²]) + y G*(g ∂S/∂E[xy]) + (1 - λ) w sign(x - y) / (C Σw),
-// with g = -λ w / (C Σw) per pixel. The forward pass computes the gradient too (training always
-// needs it); the vjp scales it by the cotangent. The loss is symmetric in (x, y), so the gradient
-// with respect to the photo is the same primitive with the two swapped. Every output element is
-// computed by one thread, and the loss is summed per row then over rows in order (float64), so the
-// results are bitwise identical for any thread count.
+// The loss primitive's forward pass writes the gradient with respect to the render too (training always
+// needs it); its vjp scales it by the cotangent. The loss is symmetric in (x, y), so the gradient with
+// respect to the photo is the same primitive with the two swapped. The ops check every argument the
+// kernels check, so the calls inside encoder.dispatch do not fail.
 #include <nanobind/nanobind.h>
 #include <nanobind/stl/optional.h>
 #include <nanobind/stl/vector.h>
 
-#include <algorithm>
-#include <cmath>
 #include <cstdint>
 #include <memory>
 #include <optional>
 #include <stdexcept>
 #include <string>
-#include <type_traits>
 #include <vector>
 
 #include "bindings.h"
+#include "kernels/mlx3d_kernels.h"
 #include "mlx/array.h"
 #include "mlx/ops.h"
 #include "mlx/primitives.h"
@@ -39,217 +31,6 @@ using namespace nb::literals;
 namespace mlx3d {
 namespace {
 
-constexpr float kC1 = 0.01f * 0.01f;
-constexpr float kC2 = 0.03f * 0.03f;
-constexpr double kWeightFloor = 1e-12;
-constexpr int kRows = 8;  // at least this many image rows per thread
-
-struct Image {
-  int h, w, c;
-  size_t size() const { return size_t(h) * w * c; }
-};
-
-// The row passes below are also compiled for AVX2 (MLX3D_AVX2_CLONES, primitive_util.h); F in the
-// templates below is float or Lanes (one element or kLanes consecutive ones). Each output
-// element is taps[r] * centre, then + taps[k] * (the two elements r - k away) for k = 0 .. r - 1, in that
-// order. The passes run over 4 lane groups of a row at a time, whose sums stay in registers over all the
-// taps (one store per element instead of one per tap).
-
-// out[j..j + U F) = taps[r] * mid + sum over k of taps[k] * (a_k + d_k) there, where a_k or d_k is null
-// outside the image (a zero term, left out).
-template <class F, int U>
-MLX3D_LANES_INLINE void filter_at(float* out, const float* mid, const float* const* a, const float* const* d,
-                                  const float* taps, int r, int j) {
-  constexpr int kStep = sizeof(F) / sizeof(float);
-  F acc[U];
-  for (int u = 0; u < U; ++u) acc[u] = taps[r] * lanes_at<F>(mid + j + u * kStep);
-  for (int k = 0; k < r; ++k) {
-    const float t = taps[k];
-    if (a[k] && d[k])
-      for (int u = 0; u < U; ++u) acc[u] += t * (lanes_at<F>(a[k] + j + u * kStep) + lanes_at<F>(d[k] + j + u * kStep));
-    else if (a[k])
-      for (int u = 0; u < U; ++u) acc[u] += t * lanes_at<F>(a[k] + j + u * kStep);
-    else if (d[k])
-      for (int u = 0; u < U; ++u) acc[u] += t * lanes_at<F>(d[k] + j + u * kStep);
-  }
-  for (int u = 0; u < U; ++u) put_lanes(out + j + u * kStep, acc[u]);
-}
-
-// filter_at over elements [0, n).
-MLX3D_LANES_INLINE void filter_span(float* out, const float* mid, const float* const* a, const float* const* d,
-                                    const float* taps, int r, int n) {
-  int j = 0;
-  for (; j + 4 * kLanes <= n; j += 4 * kLanes) filter_at<Lanes, 4>(out, mid, a, d, taps, r, j);
-  for (; j < n; ++j) filter_at<float, 1>(out, mid, a, d, taps, r, j);
-}
-
-// Rows [lo, hi) of the vertical pass: tmp = the column filter of src (zero-padded).
-MLX3D_AVX2_CLONES void vertical_rows(const float* src, float* tmp, Image im, const float* taps, int r, int64_t lo, int64_t hi) {
-  const int rowlen = im.w * im.c;
-  std::vector<const float*> a(r), d(r);
-  for (int i = int(lo); i < int(hi); ++i) {
-    for (int k = 0; k < r; ++k) {
-      const int up = i - r + k, down = i + r - k;
-      a[k] = up >= 0 ? src + size_t(up) * rowlen : nullptr;
-      d[k] = down < im.h ? src + size_t(down) * rowlen : nullptr;
-    }
-    filter_span(tmp + size_t(i) * rowlen, src + size_t(i) * rowlen, a.data(), d.data(), taps, r, rowlen);
-  }
-}
-
-// Rows [lo, hi) of the horizontal pass: dst = the row filter of tmp, each row copied into a
-// zero-padded scratch row `row` (rowlen + 2 r C floats; branch-free).
-MLX3D_AVX2_CLONES void horizontal_rows(const float* tmp, float* dst, float* row, Image im, const float* taps, int r, int64_t lo, int64_t hi) {
-  const int rowlen = im.w * im.c, pad = r * im.c;
-  std::vector<const float*> a(r), d(r);
-  for (int k = 0; k < r; ++k) {
-    a[k] = row + k * im.c;            // offset -(r - k) pixels
-    d[k] = row + (2 * r - k) * im.c;  // offset +(r - k) pixels
-  }
-  for (int i = int(lo); i < int(hi); ++i) {
-    std::copy(tmp + size_t(i) * rowlen, tmp + size_t(i + 1) * rowlen, row + pad);
-    filter_span(dst + size_t(i) * rowlen, row + pad, a.data(), d.data(), taps, r, rowlen);
-  }
-}
-
-// dst = zero-padded "same" separable filter of src with the symmetric `taps`; tmp: scratch of src's size.
-void blur(const float* src, float* dst, float* tmp, Image im, const std::vector<float>& taps, int num_threads) {
-  const int r = static_cast<int>(taps.size()) / 2;
-  parallel_ranges(im.h, num_threads, kRows, [=](int64_t lo, int64_t hi) {  // taps copied per thread
-    vertical_rows(src, tmp, im, taps.data(), r, lo, hi);
-  });
-  parallel_ranges(im.h, num_threads, kRows, [=](int64_t lo, int64_t hi) {
-    std::vector<float> scratch(im.w * im.c + 2 * r * im.c, 0.0f);
-    horizontal_rows(tmp, dst, scratch.data(), im, taps.data(), r, lo, hi);
-  });
-}
-
-struct SsimMaps {
-  const float *x, *y, *mu_x, *mu_y, *e_xx, *e_yy, *e_xy;  // (H,W,C): the images and their filtered maps
-  float *d_mu, *d_xx, *d_xy;                              // (H,W,C) out: g ∂S/∂μx, g ∂S/∂E[x²], g ∂S/∂E[xy]
-};
-
-template <class F>
-MLX3D_LANES_INLINE F abs_of(F v) {
-#if defined(MLX3D_VECTOR_LANES)
-  if constexpr (!std::is_same_v<F, float>) {
-    typedef int32_t Bits __attribute__((vector_size(sizeof(F))));
-    return (F)((Bits)v & 0x7fffffff);  // fabs per lane: the sign bit cleared
-  } else
-#endif
-    return std::fabs(v);
-}
-
-// Element(s) q = base + j of the SSIM map pass: the d_* maps, the SSIM s and |x - y| (to s_row[j],
-// l_row[j]), with g = g_row[j].
-template <class F>
-MLX3D_LANES_INLINE void ssim_element(const SsimMaps& m, const float* g_row, float* s_row, float* l_row, size_t base, int j) {
-  const size_t q = base + j;
-  const F m1 = lanes_at<F>(m.mu_x + q), m2 = lanes_at<F>(m.mu_y + q);
-  const F s11 = lanes_at<F>(m.e_xx + q) - m1 * m1, s22 = lanes_at<F>(m.e_yy + q) - m2 * m2;
-  const F s12 = lanes_at<F>(m.e_xy + q) - m1 * m2;
-  const F a1 = 2.0f * m1 * m2 + kC1, a2 = 2.0f * s12 + kC2;
-  const F b1 = m1 * m1 + m2 * m2 + kC1, b2 = s11 + s22 + kC2;
-  const F den = b1 * b2, s = a1 * a2 / den;
-  const F ds_a1 = a2 / den, ds_a2 = a1 / den, ds_b1 = -s / b1, ds_b2 = -s / b2;
-  const F g = lanes_at<F>(g_row + j);
-  put_lanes(s_row + j, s);
-  put_lanes(l_row + j, abs_of(lanes_at<F>(m.x + q) - lanes_at<F>(m.y + q)));
-  put_lanes(m.d_mu + q, g * (ds_a1 * 2.0f * m2 - ds_a2 * 2.0f * m2 + ds_b1 * 2.0f * m1 - ds_b2 * 2.0f * m1));
-  put_lanes(m.d_xx + q, g * ds_b2);
-  put_lanes(m.d_xy + q, g * 2.0f * ds_a2);
-}
-
-// Row i of the SSIM map pass: the d_* maps of its elements, and the row's w-weighted sums of the
-// per-pixel L1 and SSIM (each the mean over channels). The elements run in lanes; each pixel's channel
-// sums and the row's float64 sums are then taken in order, so the results do not depend on the lanes.
-// scratch: 3 W C floats.
-MLX3D_AVX2_CLONES void ssim_row(const SsimMaps& m, const float* w, Image im, float lambda, double inv_w, int i,
-                                float* scratch, double& row_l1, double& row_ssim) {
-  const int rowlen = im.w * im.c;
-  const size_t base = size_t(i) * rowlen;
-  const float inv_c = 1.0f / im.c;
-  float *g_row = scratch, *s_row = scratch + rowlen, *l_row = scratch + 2 * rowlen;
-  for (int xj = 0; xj < im.w; ++xj) {
-    const float wp = w ? w[size_t(i) * im.w + xj] : 1.0f;
-    const float g = static_cast<float>(-lambda * wp * inv_w) * inv_c;
-    for (int ch = 0; ch < im.c; ++ch) g_row[xj * im.c + ch] = g;
-  }
-  int j = 0;
-  for (; j + kLanes <= rowlen; j += kLanes) ssim_element<Lanes>(m, g_row, s_row, l_row, base, j);
-  for (; j < rowlen; ++j) ssim_element<float>(m, g_row, s_row, l_row, base, j);
-  double l1 = 0.0, ssim = 0.0;
-  for (int xj = 0; xj < im.w; ++xj) {
-    const float wp = w ? w[size_t(i) * im.w + xj] : 1.0f;
-    float sp = 0.0f, lp = 0.0f;
-    for (int ch = 0; ch < im.c; ++ch) {
-      sp += s_row[xj * im.c + ch];
-      lp += l_row[xj * im.c + ch];
-    }
-    l1 += double(wp) * (lp * inv_c);
-    ssim += double(wp) * (sp * inv_c);
-  }
-  row_l1 = l1;
-  row_ssim = ssim;
-}
-
-// loss (one float) and dL/dx (H,W,C) of x against y, weights w (H,W) or null.
-void run_loss(const float* x, const float* y, const float* w, Image im, float lambda, const std::vector<float>& taps,
-              int num_threads, float* loss_out, float* grad) {
-  const size_t n = im.size();
-  const int pixels = im.h * im.w;
-  const int64_t per_thread = int64_t(kRows) * im.w * im.c;  // elements: as many threads as for the rows
-  double wsum = 0.0;
-  if (w)
-    for (int p = 0; p < pixels; ++p) wsum += w[p];
-  else
-    wsum = pixels;
-  const double inv_w = 1.0 / std::max(wsum, kWeightFloor);
-  ScratchFloats prod(n), tmp(n), mu_x(n), mu_y(n), e_xx(n), e_yy(n), e_xy(n);  // each fully written before it is read
-  auto fill = [&](auto f) {
-    float* out = prod.data();
-    parallel_blocks(int64_t(n), num_threads, per_thread, [=](int64_t lo, int64_t hi) {
-      for (int64_t i = lo; i < hi; ++i) out[i] = f(i);
-    });
-  };
-  blur(x, mu_x.data(), tmp.data(), im, taps, num_threads);
-  blur(y, mu_y.data(), tmp.data(), im, taps, num_threads);
-  fill([x](int64_t i) { return x[i] * x[i]; });
-  blur(prod.data(), e_xx.data(), tmp.data(), im, taps, num_threads);
-  fill([y](int64_t i) { return y[i] * y[i]; });
-  blur(prod.data(), e_yy.data(), tmp.data(), im, taps, num_threads);
-  fill([x, y](int64_t i) { return x[i] * y[i]; });
-  blur(prod.data(), e_xy.data(), tmp.data(), im, taps, num_threads);
-  // per pixel: the loss terms, and g ∂S/∂(μx, E[x²], E[xy]) in place of μy, E[y²] and E[xy]'s copies
-  std::vector<double> row_l1(im.h, 0.0), row_ssim(im.h, 0.0);
-  float* d_mu = prod.data();
-  float* d_xx = tmp.data();
-  ScratchFloats d_xy_buf(n);
-  float* d_xy = d_xy_buf.data();
-  const SsimMaps maps{x, y, mu_x.data(), mu_y.data(), e_xx.data(), e_yy.data(), e_xy.data(), d_mu, d_xx, d_xy};
-  parallel_ranges(im.h, num_threads, kRows, [=, row_l1 = row_l1.data(), row_ssim = row_ssim.data()](int64_t lo, int64_t hi) {
-    std::vector<float> scratch(3 * size_t(im.w) * im.c);
-    for (int i = int(lo); i < int(hi); ++i) ssim_row(maps, w, im, lambda, inv_w, i, scratch.data(), row_l1[i], row_ssim[i]);
-  });
-  double l1 = 0.0, ssim = 0.0;
-  for (int i = 0; i < im.h; ++i) l1 += row_l1[i], ssim += row_ssim[i];
-  const float inv_c = 1.0f / im.c;
-  *loss_out = static_cast<float>((1.0 - lambda) * l1 * inv_w + lambda * (1.0 - ssim * inv_w));
-  // back through the filter (self-adjoint); mu_x, e_xx, e_xy are free now
-  blur(d_mu, mu_x.data(), e_yy.data(), im, taps, num_threads);
-  blur(d_xx, e_xx.data(), e_yy.data(), im, taps, num_threads);
-  blur(d_xy, e_xy.data(), e_yy.data(), im, taps, num_threads);
-  const float l1_scale = static_cast<float>((1.0 - lambda) * inv_w) * inv_c;
-  parallel_blocks(int64_t(n), num_threads, per_thread, [=, mu_x = mu_x.data(), e_xx = e_xx.data(), e_xy = e_xy.data()](int64_t lo, int64_t hi) {
-    for (int64_t q = lo; q < hi; ++q) {
-      const float diff = x[q] - y[q];
-      const float sign = diff > 0.0f ? 1.0f : (diff < 0.0f ? -1.0f : 0.0f);
-      const float wp = w ? w[q / im.c] : 1.0f;
-      grad[q] = mu_x[q] + 2.0f * x[q] * e_xx[q] + y[q] * e_xy[q] + l1_scale * wp * sign;
-    }
-  });
-}
-
 class PhotometricLoss : public CpuPrimitive {
  public:
   PhotometricLoss(mx::Stream stream, float lambda, std::vector<float> taps, int num_threads)
@@ -258,11 +39,15 @@ class PhotometricLoss : public CpuPrimitive {
   // inputs: img (H,W,C), ref (H,W,C)[, weights (H,W)]; outputs: loss (), dloss/dimg (H,W,C)
   void eval_cpu(const std::vector<mx::array>& inputs, std::vector<mx::array>& outputs) override {
     auto& encoder = prepare_outputs(*this, inputs, outputs);
-    const Image im{inputs[0].shape(0), inputs[0].shape(1), inputs[0].shape(2)};
+    const int64_t h = inputs[0].shape(0), w = inputs[0].shape(1), c = inputs[0].shape(2);
     const float *x = inputs[0].data<float>(), *y = inputs[1].data<float>();
-    const float* w = inputs.size() > 2 ? inputs[2].data<float>() : nullptr;
+    const float* weights = inputs.size() > 2 ? inputs[2].data<float>() : nullptr;
     float *loss = outputs[0].data<float>(), *grad = outputs[1].data<float>();
-    encoder.dispatch([=, lambda = lambda_, taps = taps_, threads = num_threads_]() { run_loss(x, y, w, im, lambda, taps, threads, loss, grad); });
+    encoder.dispatch([=, lambda = lambda_, taps = taps_, threads = num_threads_]() {
+      ScratchFloats scratch(8 * size_t(h) * w * c);  // from MLX's buffer cache: no fresh pages per call
+      check_call(mlx3d_photometric_loss(x, y, weights, h, w, c, lambda, taps.data(), int64_t(taps.size()), threads, scratch.data(), loss,
+                                        grad));
+    });
   }
 
   std::vector<mx::array> vjp(const std::vector<mx::array>& primals, const std::vector<mx::array>& cotangents,
@@ -300,37 +85,6 @@ class PhotometricLoss : public CpuPrimitive {
   int num_threads_;
 };
 
-// The mean squared error of x, clipped to [0, 1] when `clip`, against y: the mean over channels of
-// each pixel's squared differences, then the mean over pixels (w-weighted when w is given, divided by
-// max(sum w, 1e-12)), as mlx3d.training.metrics.mse with the image clipped first. Rows are summed in
-// float64 on threads, then in row order, so the result does not depend on the thread count.
-float run_mse(const float* x, const float* y, const float* w, Image im, bool clip, int num_threads) {
-  std::vector<double> rows(im.h, 0.0), weights(im.h, 0.0);
-  parallel_ranges(im.h, num_threads, kRows, [=, rows = rows.data(), weights = weights.data()](int64_t lo, int64_t hi) {
-    const float inv_c = 1.0f / im.c;
-    for (int i = int(lo); i < int(hi); ++i) {
-      double sum = 0.0, wsum = 0.0;
-      for (int xj = 0; xj < im.w; ++xj) {
-        const size_t q = (size_t(i) * im.w + xj) * im.c;
-        float sq = 0.0f;
-        for (int ch = 0; ch < im.c; ++ch) {
-          const float v = clip ? std::min(std::max(x[q + ch], 0.0f), 1.0f) : x[q + ch];
-          const float d = v - y[q + ch];
-          sq += d * d;
-        }
-        const double wp = w ? w[size_t(i) * im.w + xj] : 1.0;
-        sum += wp * (sq * inv_c);
-        wsum += wp;
-      }
-      rows[i] = sum;
-      weights[i] = wsum;
-    }
-  });
-  double sum = 0.0, wsum = 0.0;
-  for (int i = 0; i < im.h; ++i) sum += rows[i], wsum += weights[i];
-  return static_cast<float>(sum / std::max(wsum, kWeightFloor));
-}
-
 // inputs: img (H,W,C), ref (H,W,C)[, weights (H,W)]; output: the MSE (), clipping img first when `clip`.
 // A metric: no gradient.
 class MeanSquaredError : public CpuPrimitive {
@@ -340,11 +94,13 @@ class MeanSquaredError : public CpuPrimitive {
 
   void eval_cpu(const std::vector<mx::array>& inputs, std::vector<mx::array>& outputs) override {
     auto& encoder = prepare_outputs(*this, inputs, outputs);
-    const Image im{inputs[0].shape(0), inputs[0].shape(1), inputs[0].shape(2)};
+    const int64_t h = inputs[0].shape(0), w = inputs[0].shape(1), c = inputs[0].shape(2);
     const float *x = inputs[0].data<float>(), *y = inputs[1].data<float>();
-    const float* w = inputs.size() > 2 ? inputs[2].data<float>() : nullptr;
+    const float* weights = inputs.size() > 2 ? inputs[2].data<float>() : nullptr;
     float* out = outputs[0].data<float>();
-    encoder.dispatch([=, clip = clip_, threads = num_threads_]() { *out = run_mse(x, y, w, im, clip, threads); });
+    encoder.dispatch([=, clip = clip_, threads = num_threads_]() {
+      check_call(mlx3d_mse(x, y, weights, h, w, c, clip ? 1 : 0, threads, out));
+    });
   }
 
   std::vector<mx::array> vjp(const std::vector<mx::array>&, const std::vector<mx::array>&, const std::vector<int>&,
@@ -366,14 +122,19 @@ class MeanSquaredError : public CpuPrimitive {
   int num_threads_;
 };
 
-// float32 (H,W,C) images and optional (H,W) weights, as photometric_loss checks them.
-std::vector<mx::array> image_inputs(const char* op, const mx::array& img, const mx::array& ref, const std::optional<mx::array>& weights) {
+// float32 (H, W, C) images with H, W, C >= 1 and fewer than 2^31 values (as the kernels require them),
+// optional (H, W) weights, and num_threads >= 0, as photometric_loss checks them.
+std::vector<mx::array> image_inputs(const char* op, const mx::array& img, const mx::array& ref, const std::optional<mx::array>& weights,
+                                    int num_threads) {
   auto fail = [op](const std::string& msg) { throw std::invalid_argument(std::string(op) + ": " + msg); };
   if (img.ndim() != 3 || img.shape() != ref.shape())
     fail("img and ref must be (H, W, C) of one shape, got " + shape_str(img) + " and " + shape_str(ref));
+  if (img.size() == 0) fail("the images must not be empty, got " + shape_str(img));
+  if (img.size() > size_t(INT32_MAX)) fail("the images must hold fewer than 2^31 values, got " + shape_str(img));
   if (img.dtype() != mx::float32 || ref.dtype() != mx::float32) fail("images must be float32 (the Python wrapper casts them)");
   if (weights && (weights->shape() != mx::Shape{img.shape(0), img.shape(1)} || weights->dtype() != mx::float32))
     fail("weights must be float32 (H, W), got " + shape_str(*weights));
+  if (num_threads < 0) fail("num_threads must be >= 0 (0 = all cores), got " + std::to_string(num_threads));
   auto s = mx::default_stream(mx::Device::cpu);
   std::vector<mx::array> inputs = {mx::contiguous(img, false, s), mx::contiguous(ref, false, s)};
   if (weights) inputs.push_back(mx::contiguous(*weights, false, s));
@@ -381,7 +142,7 @@ std::vector<mx::array> image_inputs(const char* op, const mx::array& img, const 
 }
 
 mx::array mean_squared_error(const mx::array& img, const mx::array& ref, std::optional<mx::array> weights, bool clip, int num_threads) {
-  std::vector<mx::array> inputs = image_inputs("mse", img, ref, weights);
+  std::vector<mx::array> inputs = image_inputs("mse", img, ref, weights, num_threads);
   return mx::array(mx::Shape{}, mx::float32, std::make_shared<MeanSquaredError>(mx::default_stream(mx::Device::cpu), clip, num_threads),
                    std::move(inputs));
 }
@@ -391,7 +152,10 @@ mx::array photometric_loss(const mx::array& img, const mx::array& ref, std::opti
   auto fail = [](const std::string& msg) { throw std::invalid_argument("photometric_loss: " + msg); };
   if (taps.empty() || taps.size() % 2 == 0) fail("taps must have an odd, positive length");
   if (!(lambda >= 0.0f && lambda <= 1.0f)) fail("lambda_dssim must be in [0, 1]");
-  std::vector<mx::array> inputs = image_inputs("photometric_loss", img, ref, weights);
+  std::vector<mx::array> inputs = image_inputs("photometric_loss", img, ref, weights, num_threads);
+  if (int64_t(taps.size()) - 1 > (INT32_MAX - int64_t(img.shape(1)) * img.shape(2)) / img.shape(2))
+    fail("too many taps (" + std::to_string(taps.size()) + ") for rows of " + std::to_string(int64_t(img.shape(1)) * img.shape(2)) +
+         " values");
   auto s = mx::default_stream(mx::Device::cpu);
   return mx::array::make_arrays({mx::Shape{}, img.shape()}, {mx::float32, mx::float32},
                                 std::make_shared<PhotometricLoss>(s, lambda, taps, num_threads), inputs)[0];
