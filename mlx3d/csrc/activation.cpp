@@ -1,10 +1,8 @@
 // The parameter activations of a training step, exp (log-scales -> scales) and sigmoid (opacity
-// logits -> opacities), as a CPU MLX primitive threaded over elements. Each element is computed by
-// MLX's own scalar function (mlx/backend/cpu/unary_ops.h), so the results are bitwise those of
-// mx.exp / mx.sigmoid, which run on one core (and, on x86-64 Linux, one element at a time); the
-// vjp is MLX's expression, so the gradients are bitwise MLX's too. The element loop inlines MLX's
-// function (flatten) into an FMA variant (MLX3D_FMA_CLONES), where its std::fma calls are one
-// instruction each instead of calls into libm: 3-4x faster, the same bits.
+// logits -> opacities), as a CPU MLX primitive: the kernel library's mlx3d_exp / mlx3d_sigmoid
+// (kernels/activation.cpp, mlx3d_kernels.h), threaded over elements, which compute each element with
+// MLX's own scalar algorithm, so the results are bitwise those of mx.exp / mx.sigmoid (which run on one
+// core); the vjp is MLX's expression, so the gradients are bitwise MLX's too.
 #include <nanobind/nanobind.h>
 #include <nanobind/stl/string.h>
 
@@ -16,7 +14,6 @@
 
 #include "bindings.h"
 #include "mlx/array.h"
-#include "mlx/backend/cpu/unary_ops.h"
 #include "mlx/ops.h"
 #include "mlx/primitives.h"
 #include "primitive_util.h"
@@ -28,20 +25,7 @@ using namespace nb::literals;
 namespace mlx3d {
 namespace {
 
-constexpr int64_t kBlock = 1 << 15;  // at least this many elements per thread
-
 enum class Kind { kExp, kSigmoid };
-
-template <class Op>
-MLX3D_FMA_CLONES __attribute__((flatten)) void run_range(const float* x, float* y, int64_t lo, int64_t hi) {
-  Op op;
-  for (int64_t i = lo; i < hi; ++i) y[i] = op(x[i]);
-}
-
-template <class Op>
-void run(const float* x, float* y, int64_t n, int num_threads) {
-  parallel_blocks(n, num_threads, kBlock, [x, y](int64_t lo, int64_t hi) { run_range<Op>(x, y, lo, hi); });
-}
 
 class Activation : public CpuPrimitive {
  public:
@@ -54,10 +38,7 @@ class Activation : public CpuPrimitive {
     float* y = outputs[0].data<float>();
     const int64_t n = inputs[0].size();
     encoder.dispatch([x, y, n, kind = kind_, threads = num_threads_]() {
-      if (kind == Kind::kExp)
-        run<mx::detail::Exp>(x, y, n, threads);
-      else
-        run<mx::detail::Sigmoid>(x, y, n, threads);
+      check_call(kind == Kind::kExp ? mlx3d_exp(x, n, threads, y) : mlx3d_sigmoid(x, n, threads, y));
     });
   }
 

@@ -1,30 +1,28 @@
 // One Adam step on a parameter array as CPU MLX primitives, and the finiteness check the trainer runs
-// before it.
+// before it: the kernel library's mlx3d_adam_moment, mlx3d_adam_param and mlx3d_all_finite
+// (kernels/adam.cpp, mlx3d_kernels.h) run on MLX arrays.
 //
 //   m' = b1 m + (1 - b1) g;  v' = b2 v + (1 - b2) g²;  p' = p - lr (m' / c1) / (sqrt(v' / c2) + eps)
 //
 // with the bias corrections c1 = 1 - b1^t, c2 = 1 - b2^t given by the caller: AdamMoment (m', then v')
-// and AdamParam (p'), threaded passes over the elements, so results do not depend on the thread count.
-// AllFinite checks a step's loss and gradients first (the trainer updates only when they are finite).
+// and AdamParam (p'). AllFinite checks a step's loss and gradients first (the trainer updates only when
+// they are finite).
 //
 // Each is a single-output primitive, so MLX's own donation rule applies: its output is written over its
-// first input when nothing else holds that array (then m' over m, v' over v, p' over p). A fresh buffer
-// costs a page fault and zeroing per 4 KB page on first touch (writing 236 MB of fresh pages took
-// 170-210 ms here, against 40 ms for memory already touched), and the old and new arrays then coexist
-// (3 x 236 MB at 1M Gaussians). mlx3d.training.adam.Adam drops its old moments for the new ones, and the
-// trainer drops its parameters before evaluating the update (after the step's gradients, whose graph
-// holds them).
+// first input when nothing else holds that array (then m' over m, v' over v, p' over p; the library's
+// functions may update in place). A fresh buffer costs a page fault and zeroing per 4 KB page on first
+// touch (writing 236 MB of fresh pages took 170-210 ms here, against 40 ms for memory already touched),
+// and the old and new arrays then coexist (3 x 236 MB at 1M Gaussians). mlx3d.training.adam.Adam drops
+// its old moments for the new ones, and the trainer drops its parameters before evaluating the update
+// (after the step's gradients, whose graph holds them).
 #include <nanobind/nanobind.h>
 #include <nanobind/stl/vector.h>
 
-#include <algorithm>
-#include <atomic>
-#include <cmath>
-#include <cstring>
 #include <cstdint>
 #include <memory>
 #include <stdexcept>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "bindings.h"
@@ -40,64 +38,10 @@ using namespace nb::literals;
 namespace mlx3d {
 namespace {
 
-constexpr int64_t kBlock = 1 << 16;  // at least this many floats per thread
-
+// The step's scalars as the caller gave them (the library rounds them to float32).
 struct AdamScalars {
-  float lr, b1, one_minus_b1, b2, one_minus_b2, eps, c1, c2;
+  double lr, b1, b2, eps, c1, c2;
 };
-
-// Whether x is NaN or infinite: its exponent bits are all ones.
-inline bool non_finite(float x) {
-  uint32_t bits;
-  std::memcpy(&bits, &x, 4);
-  return (bits & 0x7f800000u) == 0x7f800000u;
-}
-
-// The element loops below run in chunks of kChunk: each chunk is read and computed into locals, then
-// stored, so an output may be its input (in place) and the compiler still vectorizes them (AVX2 clones;
-// adam.cpp is compiled without errno for sqrt, CMakeLists.txt). Division and sqrt are correctly rounded
-// in every variant, so the results do not depend on it. Full chunks have a constant length (kFixed): with
-// a variable one GCC compiled the stores to `rep movs` copies, a third of the loops' time.
-constexpr int kChunk = 16;
-
-// Elements [i0, i0 + k) of a moment (k = kFixed, or k_any when kFixed is 0; k <= kChunk): out = a x + (1 - a) g,
-// or (squared) a x + (1 - a) g²; out may be x.
-template <int kFixed>
-MLX3D_LANES_INLINE void moment_chunk(const float* g, const float* x, float* out, float a, float one_minus_a, bool squared,
-                                     int64_t i0, int k_any) {
-  const int k = kFixed > 0 ? kFixed : k_any;
-  float c[kChunk];
-  if (squared)
-    for (int j = 0; j < k; ++j) c[j] = a * x[i0 + j] + one_minus_a * (g[i0 + j] * g[i0 + j]);
-  else
-    for (int j = 0; j < k; ++j) c[j] = a * x[i0 + j] + one_minus_a * g[i0 + j];
-  for (int j = 0; j < k; ++j) out[i0 + j] = c[j];
-}
-
-// Elements [lo, hi) of a moment.
-MLX3D_AVX2_CLONES void moment_range(const float* g, const float* x, float* out, float a, float one_minus_a, bool squared,
-                                    int64_t lo, int64_t hi) {
-  int64_t i0 = lo;
-  for (; i0 + kChunk <= hi; i0 += kChunk) moment_chunk<kChunk>(g, x, out, a, one_minus_a, squared, i0, kChunk);
-  if (i0 < hi) moment_chunk<0>(g, x, out, a, one_minus_a, squared, i0, static_cast<int>(hi - i0));
-}
-
-// Elements [i0, i0 + k) of the parameters from the new moments (k as in moment_chunk): p_out may be p.
-template <int kFixed>
-MLX3D_LANES_INLINE void param_chunk(const float* p, const float* m, const float* v, float* p_out, const AdamScalars& s,
-                                    int64_t i0, int k_any) {
-  const int k = kFixed > 0 ? kFixed : k_any;
-  float pc[kChunk];
-  for (int j = 0; j < k; ++j) pc[j] = p[i0 + j] - (s.lr * (m[i0 + j] / s.c1)) / (std::sqrt(v[i0 + j] / s.c2) + s.eps);
-  for (int j = 0; j < k; ++j) p_out[i0 + j] = pc[j];
-}
-
-// Elements [lo, hi) of the parameters.
-MLX3D_AVX2_CLONES void param_range(const float* p, const float* m, const float* v, float* p_out, AdamScalars s, int64_t lo, int64_t hi) {
-  int64_t i0 = lo;
-  for (; i0 + kChunk <= hi; i0 += kChunk) param_chunk<kChunk>(p, m, v, p_out, s, i0, kChunk);
-  if (i0 < hi) param_chunk<0>(p, m, v, p_out, s, i0, static_cast<int>(hi - i0));
-}
 
 // `out` over input k's buffer where MLX may donate it (nothing else holds it; MLX's rule) and no other input
 // shares it, else a fresh buffer.
@@ -143,9 +87,9 @@ class AdamMoment : public AdamBase {
     const float *g = inputs[0].data<float>(), *x = inputs[1].data<float>();
     float* out = outputs[0].data<float>();
     const int64_t n = inputs[0].size();
-    const float a = squared_ ? s_.b2 : s_.b1, one_minus_a = squared_ ? s_.one_minus_b2 : s_.one_minus_b1;
-    encoder.dispatch([=, squared = squared_, threads = num_threads_]() {
-      parallel_blocks(n, threads, kBlock, [=](int64_t lo, int64_t hi) { moment_range(g, x, out, a, one_minus_a, squared, lo, hi); });
+    const double beta = squared_ ? s_.b2 : s_.b1;
+    encoder.dispatch([=, squared = int(squared_), threads = num_threads_]() {
+      check_call(mlx3d_adam_moment(g, x, n, beta, squared, threads, out));
     });
   }
 
@@ -163,14 +107,13 @@ class AdamParam : public AdamBase {
   using AdamBase::AdamBase;
 
   void eval_cpu(const std::vector<mx::array>& inputs, std::vector<mx::array>& outputs) override {
-    const mx::array& p = inputs[0];
     output_over(inputs, 0, outputs[0]);
     auto& encoder = register_arrays(*this, inputs, outputs);
-    const float *pp = p.data<float>(), *m = inputs[1].data<float>(), *v = inputs[2].data<float>();
-    float* po = outputs[0].data<float>();
-    const int64_t n = p.size();
+    const float *p = inputs[0].data<float>(), *m = inputs[1].data<float>(), *v = inputs[2].data<float>();
+    float* p_out = outputs[0].data<float>();
+    const int64_t n = inputs[0].size();
     encoder.dispatch([=, s = s_, threads = num_threads_]() {
-      parallel_blocks(n, threads, kBlock, [=](int64_t lo, int64_t hi) { param_range(pp, m, v, po, s, lo, hi); });
+      check_call(mlx3d_adam_param(p, m, v, n, s.lr, s.eps, s.c1, s.c2, threads, p_out));
     });
   }
 
@@ -179,8 +122,8 @@ class AdamParam : public AdamBase {
   const char* name() const override { return "AdamParam"; }
 };
 
-// A bool scalar: true when no element of any (float32) input is NaN or infinite. One threaded pass per
-// input, reading it once (the exponent bits; no arithmetic).
+// A bool scalar: true when no element of any (float32) input is NaN or infinite (mlx3d_all_finite on each
+// input in turn, one threaded pass reading it once).
 class AllFinite : public CpuPrimitive {
  public:
   AllFinite(mx::Stream stream, int num_threads)
@@ -192,15 +135,10 @@ class AllFinite : public CpuPrimitive {
     for (const auto& a : inputs) arrays.emplace_back(a.data<float>(), static_cast<int64_t>(a.size()));
     bool* out = outputs[0].data<bool>();
     encoder.dispatch([arrays, out, threads = num_threads_]() {
-      std::atomic<bool> finite(true);
-      for (const auto& [x, n] : arrays) {
-        parallel_blocks(n, threads, kBlock, [x = x, &finite](int64_t lo, int64_t hi) {
-          uint32_t bad = 0;
-          for (int64_t i = lo; i < hi; ++i) bad |= uint32_t(non_finite(x[i]));
-          if (bad) finite.store(false, std::memory_order_relaxed);
-        });
-      }
-      *out = finite.load();
+      uint8_t finite = 1;
+      for (size_t i = 0; i < arrays.size() && finite; ++i)
+        check_call(mlx3d_all_finite(arrays[i].first, arrays[i].second, threads, &finite));
+      *out = finite != 0;
     });
   }
 
@@ -231,8 +169,7 @@ std::vector<mx::array> adam_step(const mx::array& p, const mx::array& g, const m
     if (a->dtype() != mx::float32) throw std::invalid_argument("adam_step: arrays must be float32");
   if (!(c1 > 0) || !(c2 > 0)) throw std::invalid_argument("adam_step: bias corrections c1, c2 must be > 0");
   if (num_threads < 0) throw std::invalid_argument("adam_step: num_threads must be >= 0 (0 = all cores)");
-  // the scalars as float32, as MLX rounds Python scalars that meet a float32 array
-  const AdamScalars s{float(lr), float(b1), float(1.0 - b1), float(b2), float(1.0 - b2), float(eps), float(c1), float(c2)};
+  const AdamScalars s{lr, b1, b2, eps, c1, c2};
   auto st = mx::default_stream(mx::Device::cpu);
   auto c = [&](const mx::array& a) { return mx::contiguous(a, false, st); };
   const mx::array gc = c(g);
