@@ -63,7 +63,7 @@ BPY_LTS := 4.5.15
 BPY_LATEST := 5.3.0
 PYTEST_ARGS ?=
 
-.PHONY: demo test $(TEST_MATRIX) test-venv peer-tools cross-tools kernels bench bench-scenes report install extension docs
+.PHONY: demo test $(TEST_MATRIX) test-venv peer-tools zig cross-tools kernels bench bench-scenes report install extension docs
 
 # `make demo` runs the Blender extension as a user would: it builds the extension
 # zip for this machine and the venv's Python (build/demo-extension/), installs and
@@ -101,6 +101,7 @@ test:
 
 test-py311:
 	@$(call require_python,3.11,$(PYTHON311))
+	$(MAKE) --no-print-directory zig VENV=.venv PYTHON="$(PYTHON311)" BPY=$(BPY_3.11)
 	$(MAKE) --no-print-directory test-venv VENV=.venv PYTHON="$(PYTHON311)" BPY=$(BPY_3.11)
 
 test-py313:
@@ -177,9 +178,13 @@ CROSS_PACKAGES := wine64 qemu-user-static libc6-arm64-cross
 test-kernel-platforms: $(STAMP) cross-tools
 	MLX3D_KERNEL_PLATFORMS=1 $(PY) -m pytest -q $(PYTEST_ARGS) tests/test_kernel_platforms.py
 
-cross-tools: $(STAMP)
+# zig (PyPI's ziglang, pinned), which builds the kernel library for the other platforms: the extension zips
+# (test-py311's packaging tests) and the platform tests need it.
+zig: $(STAMP)
 	@$(PY) -c "import importlib.metadata as m, sys; sys.exit(m.version('ziglang') != '$(ZIGLANG)')" 2>/dev/null || \
 		$(PY) -m pip install -q ziglang==$(ZIGLANG)
+
+cross-tools: zig
 	@missing=$$(for p in $(CROSS_PACKAGES); do dpkg -s $$p > /dev/null 2>&1 || echo $$p; done); \
 	if [ -n "$$missing" ] && command -v apt-get > /dev/null && [ "$$(id -u)" = 0 ]; then \
 		echo "make: installing $$missing (apt-get)"; \
@@ -256,7 +261,7 @@ test-docs:
 # platform, or `make extension PLATFORM=linux-x64,macos-arm64,windows-x64,linux-arm64`
 # (or PLATFORM=all); an environment variable PLATFORM is not used.
 PLATFORM =
-extension: $(STAMP)
+extension: zig
 	$(PY) addon/package.py $(if $(PLATFORM),--platform $(PLATFORM))
 
 # Editable install without build isolation in a fixed build directory: the

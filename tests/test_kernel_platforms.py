@@ -148,12 +148,319 @@ def knn_calls():
 
 
 # ---- rasterizer calls ----
+RASTER_SIZE = (72, 52, 16)  # width, height, tile: tiles cut by the image's edges
+
+
+def raster_inputs(backend: str = "cpu"):
+    """The real splat file projected and binned for a small camera beside it (``backend``'s projection and
+    binning): (means2d, conics, features (N, 3), opacities, tile_offsets, flatten_ids, depths) as numpy."""
+    import mlx.core as mx
+
+    from mlx3d.cameras import Camera
+    from mlx3d.io import read_splats
+    from mlx3d.render.pipeline import _project_and_bin
+
+    arrays = read_splats(SPLATS)
+    means = np.asarray(arrays.means, np.float32)
+    width, height, tile = RASTER_SIZE
+    centre, size = means.mean(axis=0), float(np.ptp(means, axis=0).max())
+    camera = Camera.look_at(eye=tuple(centre + np.array([0.3, -1.2, 0.5]) * size), at=tuple(centre), up=(0, 0, 1), fov=60,
+                            width=width, height=height)
+    opacities = mx.sigmoid(mx.array(np.asarray(arrays.opacities, np.float32).reshape(-1)))
+    proj, opac, bins = _project_and_bin(camera, mx.array(means), mx.array(np.asarray(arrays.quats, np.float32)),
+                                        mx.exp(mx.array(np.asarray(arrays.scales, np.float32))), opacities, "ewa", False, 0.3,
+                                        tile, backend)
+    features = np.clip(0.5 + 0.28209479 * np.asarray(arrays.sh_dc, np.float32).reshape(-1, 3), 0, 1).astype(np.float32)
+    return tuple(np.array(a) for a in (proj.means2d, proj.conics)) + (features, np.array(opac), np.array(bins.tile_offsets),
+                                                                      np.array(bins.flatten_ids), np.array(proj.depths))
+
+
+def raster_calls():
+    """Forward (with and without a background) and backward passes of the real file's Gaussians at several thread
+    counts, with pseudo-random output gradients; the backward pass's inputs from the in-process forward pass."""
+    import mlx.core as mx
+
+    from mlx3d import kernel_library
+
+    width, height, tile = RASTER_SIZE
+    means2d, conics, features, opac, offsets, ids, _ = raster_inputs()
+    n, m = len(means2d), len(ids)
+    background = np.array([0.2, 0.5, 0.9], np.float32)
+    _, _, last, final_t = (np.array(a) for a in kernel_library.rasterize_forward(
+        *(mx.array(a) for a in (means2d, conics, features, opac, offsets, ids)), width, height, tile))
+    rng = np.random.default_rng(11)
+    d_accum, d_alpha = (rng.normal(size=shape).astype(np.float32) for shape in ((height, width, 3), (height, width)))
+    head = [("f", means2d), ("f", conics), ("f", features), ("f", opac), ("n", offsets), ("n", ids), ("i", n), ("i", 3), ("i", m),
+            ("i", width), ("i", height), ("i", tile)]
+    calls = []
+    for threads in THREADS:
+        for bg in (np.zeros(0, np.float32), background):
+            calls.append(("mlx3d_rasterize_forward", head + [("f", bg), ("i", threads), ("o", height * width * 3),
+                                                             ("o", height * width), ("o", height * width), ("o", height * width)]))
+        calls.append(("mlx3d_rasterize_backward", head + [("n", last), ("f", final_t), ("f", d_accum), ("f", d_alpha),
+                                                          ("f", np.zeros(0, np.float32)), ("i", threads), ("o", n * 2), ("o", n * 3),
+                                                          ("o", n * 3), ("o", n)]))
+    return calls
 # ---- projection and tile binning calls ----
+def projection_inputs():
+    """The real splat file's means, quats and scales (float32) and a camera beside it: (means, quats, scales, camera)."""
+    from mlx3d.cameras import Camera
+    from mlx3d.io import read_splats
+
+    arrays = read_splats(SPLATS)
+    means = np.ascontiguousarray(arrays.means, np.float32)
+    width, height, _ = RASTER_SIZE
+    centre, size = means.mean(axis=0), float(np.ptp(means, axis=0).max())
+    camera = Camera.look_at(eye=tuple(centre + np.array([0.3, -1.2, 0.5]) * size), at=tuple(centre), up=(0, 0, 1), fov=60,
+                            width=width, height=height)
+    return (means, np.ascontiguousarray(arrays.quats, np.float32), np.exp(np.asarray(arrays.scales, np.float32)), camera)
+
+
+def camera_args(camera, blur: float = 0.3, antialias: bool = True) -> list:
+    """mlx3d_project_ewa's camera arguments, as driver arguments."""
+    return [("f", np.asarray(camera.viewmat, np.float32).reshape(-1)), ("x", camera.fx), ("x", camera.fy), ("x", camera.cx),
+            ("x", camera.cy), ("i", camera.width), ("i", camera.height), ("x", camera.near), ("x", camera.far), ("x", blur),
+            ("i", int(antialias))]
+
+
+def binning_calls():
+    """The real file's Gaussians binned (with the radii alone and tightened by conics and opacities) at several thread
+    counts; the entry counts from the in-process library (the driver checks them)."""
+    from mlx3d import kernel_library
+
+    width, height, tile = RASTER_SIZE
+    means2d, conics, _, opac, _, _, depths = raster_inputs()
+    radii = np.ceil(3.0 * np.sqrt(np.maximum(conics[:, [2, 0]].max(axis=1) / np.maximum(
+        conics[:, 0] * conics[:, 2] - conics[:, 1] ** 2, 1e-12), 0))).astype(np.float32)
+    calls = []
+    for extents in ((np.zeros(0, np.float32), np.zeros(0, np.float32)), (conics, opac)):
+        tight = extents[0].size > 0
+        m = len(kernel_library.bin_tiles(means2d, radii, depths, width, height, tile, 1, *(extents if tight else (None, None)))[1])
+        for threads in THREADS:
+            calls.append(("mlx3d_bin_tiles", [("f", means2d), ("f", radii), ("f", depths), ("i", len(means2d)), ("i", width),
+                                              ("i", height), ("i", tile), ("f", extents[0]), ("f", extents[1]), ("i", threads),
+                                              ("o", -(-width // tile) * -(-height // tile) + 1), ("o", m)]))
+    return calls
+
+
+def projection_calls():
+    """The real file's Gaussians projected (with and without antialiasing) and the projection's backward pass with
+    pseudo-random output gradients, at several thread counts."""
+    means, quats, scales, camera = projection_inputs()
+    n = len(means)
+    rng = np.random.default_rng(13)
+    cot = [rng.normal(size=shape).astype(np.float32) for shape in ((n, 2), (n, 3), (n,), (n,))]
+    calls = []
+    for threads in THREADS:
+        for antialias in (False, True):
+            head = [("f", means), ("f", quats), ("f", scales), ("i", n)] + camera_args(camera, antialias=antialias)
+            calls.append(("mlx3d_project_ewa", head + [("i", threads), ("o", n * 2), ("o", n * 3), ("o", n), ("o", n), ("o", n)]))
+            calls.append(("mlx3d_project_ewa_backward", head + [("f", c) for c in cot] + [("i", threads), ("o", n * 3), ("o", n * 4),
+                                                                                          ("o", n * 3)]))
+    return calls
 # ---- photometric loss calls ----
+_PHOTOMETRIC_CASES: list = []
+
+
+def photometric_cases():
+    """[(name, render, photo, weights)] float32 (H, W, C) and (H, W): the splat file rendered from a camera beside it
+    (150 x 203: no multiple of the kernels' 8-row, 8-lane or 64-element blocks; values above 1 where splats add up)
+    against its render from 3% of the scene's size away (the "photo"), and fixed pseudo-random images: C = 3, 4 and 1,
+    one smaller than the SSIM window. Rendered once (pure MLX renderer) per session."""
+    if not _PHOTOMETRIC_CASES:
+        import mlx.core as mx
+
+        from mlx3d.cameras import Camera
+        from mlx3d.io import read_splats
+        from mlx3d.render import render_gaussians
+
+        arrays = read_splats(SPLATS)
+        means = np.ascontiguousarray(arrays.means, dtype=np.float32)
+        centre, span = means.mean(axis=0), float(np.ptp(means, axis=0).max())
+        eye = centre + np.array([0.0, -0.7, 0.35]) * span
+
+        def render(at):
+            camera = Camera.look_at(eye=at, at=centre, up=(0, 0, 1), fov=60, width=203, height=150)
+            out = render_gaussians(camera, mx.array(means), mx.array(arrays.quats), mx.exp(mx.array(arrays.scales)),
+                                   mx.sigmoid(mx.array(arrays.opacities)), sh=(mx.array(arrays.sh_dc), mx.array(arrays.sh_rest)),
+                                   background=np.array([0.55, 0.65, 0.8], np.float32), backend="reference")
+            return np.ascontiguousarray(out["image"], dtype=np.float32)
+
+        rng = np.random.default_rng(11)
+        cases = [("render", render(eye), render(eye + np.array([0.03, 0.0, 0.015]) * span))]
+        for h, w, c in ((37, 53, 3), (19, 45, 4), (64, 9, 1), (5, 7, 3)):
+            x = rng.uniform(0, 1, (h, w, c)).astype(np.float32)
+            cases.append((f"random {h}x{w}x{c}", x, np.clip(x + rng.normal(0, 0.15, x.shape), 0, 1).astype(np.float32)))
+        _PHOTOMETRIC_CASES.extend((name, x, y, rng.uniform(0, 1, x.shape[:2]).astype(np.float32)) for name, x, y in cases)
+    return _PHOTOMETRIC_CASES
+
+
+def photometric_taps(window: int = 11, sigma: float = 1.5) -> np.ndarray:
+    from mlx3d.training.metrics import _taps
+
+    return np.array(_taps(window, sigma), np.float32)
+
+
+def photometric_calls():
+    """The loss and its gradient (and the photo's: the images swapped) of each case, without and with weights, at
+    several thread counts (the render also with lambda 1, a 7-tap window and scratch memory given, returned as an
+    output); the MSE, clipped and not, of each; and a bad lambda and an even window (errors, the same message
+    everywhere)."""
+    calls, taps = [], photometric_taps()
+
+    def loss(x, y, w, threads, lam=0.2, t=taps, scratch=False):
+        h, wd, c = x.shape
+        return ("mlx3d_photometric_loss", [("f", x), ("f", y), ("f", w), ("i", h), ("i", wd), ("i", c), ("x", lam), ("f", t),
+                                           ("i", t.size), ("i", threads), ("o", 8 * x.size if scratch else 0), ("o", 1), ("o", x.size)])
+
+    none = np.zeros(0, np.float32)
+    for name, x, y, w in photometric_cases():
+        for threads in THREADS:
+            for weights in (none, w):
+                calls += [loss(x, y, weights, threads), loss(y, x, weights, threads)]
+                for clip in (0, 1):
+                    shown = x * np.float32(1.4) - np.float32(0.2)  # values outside [0, 1] for the clip
+                    calls.append(("mlx3d_mse", [("f", shown), ("f", y), ("f", weights), *(("i", s) for s in x.shape), ("i", clip),
+                                                ("i", threads), ("o", 1)]))
+    x, y, w = photometric_cases()[0][1:]
+    calls += [loss(x, y, w, 2, lam=1.0), loss(x, y, w, 4, t=photometric_taps(7, 1.0)), loss(x, y, none, 2, scratch=True)]
+    calls += [loss(x, y, w, 1, lam=1.5), loss(x, y, w, 1, t=taps[:10])]  # errors
+    return calls
+
+
 # ---- optimizer and activations calls ----
+ADAM_BETAS, ADAM_EPS = (0.9, 0.999), 1e-15
 
 
-ARRAY_TYPES = {"f": "<f4", "u": "u1", "n": "<i4", "D": "<f8"}
+def numpy_moment(g, x, beta: float, squared: int) -> np.ndarray:
+    """Adam's moment update by numpy's float32 expression (mlx3d.training.adam; the scalars rounded to float32)."""
+    return np.float32(beta) * x + np.float32(1.0 - beta) * (g * g if squared else g)
+
+
+def numpy_param(p, m, v, lr: float, eps: float, c1: float, c2: float) -> np.ndarray:
+    f = np.float32
+    return p - (f(lr) * (m / f(c1))) / (np.sqrt(v / f(c2)) + f(eps))
+
+
+def numpy_adam(p, g, m, v, lr, c1, c2):
+    """One Adam step by numpy's float32 expression: p', m', v'."""
+    m2, v2 = numpy_moment(g, m, ADAM_BETAS[0], 0), numpy_moment(g, v, ADAM_BETAS[1], 1)
+    return numpy_param(p, m2, v2, lr, ADAM_EPS, c1, c2), m2, v2
+
+
+def adam_gradient(rng, shape, scale: float) -> np.ndarray:
+    """A step's gradient: normal * scale, a fifth exact zeros (unseen Gaussians), a twentieth 1e6 times larger and one
+    1e-25 times smaller (squares that underflow to 0), and denormals, -0 and 3e4 first."""
+    g = rng.normal(size=shape) * scale
+    u = rng.random(shape)
+    g[u < 0.2] = 0.0
+    g[(u >= 0.2) & (u < 0.25)] *= 1e6
+    g[(u >= 0.25) & (u < 0.3)] *= 1e-25
+    g.flat[:4] = [1e-40, -1e-45, -0.0, 3e4]
+    return g.astype(np.float32)
+
+
+def adam_steps(sh_rows: int, steps: int = 3) -> list:
+    """Three Adam steps from zero moments of the splat file's centres, its SH rest coefficients (tiled to sh_rows rows),
+    log-scales and opacity logits, with the trainer's learning rates: [(p, g, m, v, lr, c1, c2, numpy's (p', m', v'))]."""
+    _, rest, means, _, _ = sh_inputs()
+    rng = np.random.default_rng(17)
+    rest = np.tile(rest.reshape(len(rest), -1), (-(-sh_rows // len(rest)), 1))[:sh_rows]
+    params = [(means, 1.6e-4 * 3.0, 1e-5), (rest, 2.5e-3 / 20, 1e-6),
+              (rng.normal(-4.5, 1.0, (len(means), 3)).astype(np.float32), 5e-3, 1e-4),
+              (rng.normal(0.0, 2.0, (len(means), 1)).astype(np.float32), 5e-2, 1e-3)]
+    out = []
+    for p, lr, scale in params:
+        m = v = np.zeros_like(p)
+        for t in range(1, steps + 1):
+            g = adam_gradient(rng, p.shape, scale)
+            c1, c2 = 1.0 - ADAM_BETAS[0] ** t, 1.0 - ADAM_BETAS[1] ** t
+            new = numpy_adam(p, g, m, v, lr, c1, c2)
+            out.append((p, g, m, v, lr, c1, c2, new))
+            p, m, v = new
+    return out
+
+
+def finite_inputs(n: int = 200_000, seed: int = 23) -> np.ndarray:
+    """n finite float32 of every magnitude (random bit patterns, exponent 255 cleared to 254): denormals to 3.4e38."""
+    bits = np.random.default_rng(seed).integers(0, 2**32, n, dtype=np.uint64).astype(np.uint32)
+    bits[(bits & 0x7F800000) == 0x7F800000] &= ~np.uint32(0x00800000)
+    return bits.view(np.float32)
+
+
+def activation_inputs(stride: int = 16384) -> np.ndarray:
+    """float32 over the whole range: every stride-th bit pattern (both signs, denormals, inf, NaNs with payloads), the
+    edges (0, denormals, the +-88 cut-offs, exp's overflow and sigmoid's underflow, the largest floats, inf, NaNs), every
+    float within 200 ulps of the finite edges, and typical log-scales and logits."""
+    special = np.array([0.0, -0.0, 1e-45, -1e-45, 1e-40, -1e-40, 1.1754944e-38, -1.1754944e-38, 1e-30, -1e-30, 0.5, -0.5, 1.0, -1.0,
+                        87.3, -87.3, 88.0, -88.0, 88.72283, 88.72284, -88.72283, 89.0, -89.0, 103.97, -103.97, -104.0, 1e10, -1e10,
+                        3.4028235e38, -3.4028235e38, np.inf, -np.inf, np.nan], np.float32)
+    nans = np.array([0x7FC00000, 0xFFC00000, 0x7FC00001, 0xFFFFFFFF, 0x7F800001, 0xFF800001], np.uint32).view(np.float32)
+    sweep = (np.arange(0, 2**32, stride, dtype=np.uint64) + 1).astype(np.uint32).view(np.float32)
+    edges = special[:30].view(np.uint32).astype(np.int64)
+    near = ((edges[:, None] + np.arange(-200, 201)) % 2**32).astype(np.uint32).ravel().view(np.float32)
+    rng = np.random.default_rng(29)
+    typical = np.concatenate([rng.normal(-4.0, 2.0, 20000), rng.normal(0.0, 3.0, 20000), rng.uniform(-120, 120, 20000)]).astype(np.float32)
+    return np.concatenate([special, nans, sweep, near, typical])
+
+
+def affine_problem(n: int = 10000) -> list:
+    """[(name, linear (3, 3) float64, quats (n, 4), log_scales (n, 3))] for the hard linear maps of test_transforms (non-uniform
+    scale, shear, mirrored), with flat disks, isotropic Gaussians, huge and tiny scales at once, and near-zero quaternions."""
+    from mlx3d.transforms import compose_affine
+
+    rng = np.random.default_rng(31)
+    quats = rng.normal(size=(n, 4))
+    log_scales = rng.normal(-2, 1, size=(n, 3))
+    log_scales[: n // 6, 2] = np.log(1e-8)
+    log_scales[n // 6: n // 3] = -3.0
+    log_scales[n // 3: n // 2] = [4.0, 4.0, -12.0]
+    quats[n // 2: n // 2 + n // 30] = 0.0
+    quats[n // 2: n // 2 + n // 30, 0] = 1e-30
+    maps = {"nonuniform": compose_affine((1.0, 3.0, 0.2), (10, 20, 30), (1, 0, 0)),
+            "shear": np.array([[1.0, 0.7, 0.0, 0.1], [0.0, 1.0, 0.3, 0.2], [0.2, 0.0, 1.5, 0.3], [0, 0, 0, 1]]),
+            "mirror_scaled": compose_affine(2.5, (15, 0, 40), (0, 0, 0)) @ np.diag([1.0, -1.0, 1.0, 1.0])}
+    return [(name, np.ascontiguousarray(a[:3, :3], np.float64), quats.astype(np.float32), log_scales.astype(np.float32))
+            for name, a in maps.items()]
+
+
+def optim_calls():
+    """Adam's moments and parameter updates of three steps of four parameters (each from numpy's previous step), into
+    fresh outputs and in place, at several thread counts; the finiteness check of arrays of every magnitude, with NaN,
+    inf or -inf first, in the middle or last; exp and sigmoid over the float range; the affine re-decomposition; and
+    bad arguments (errors, the same message everywhere)."""
+    calls = []
+    for k, (p, g, m, v, lr, c1, c2, (_, m2, v2)) in enumerate(adam_steps(sh_rows=1500)):
+        threads, n = THREADS[k % len(THREADS)], p.size
+        scalars = [("i", n), ("x", lr), ("x", ADAM_EPS), ("x", c1), ("x", c2), ("i", threads)]
+        for x, beta, squared in ((m, ADAM_BETAS[0], 0), (v, ADAM_BETAS[1], 1)):
+            calls.append(("mlx3d_adam_moment", [("f", g), ("f", x), ("i", n), ("x", beta), ("i", squared), ("i", threads), ("o", n)]))
+            calls.append(("mlx3d_adam_moment", [("f", g), ("F", x), ("i", n), ("x", beta), ("i", squared), ("i", threads)]))
+        calls.append(("mlx3d_adam_param", [("f", p), ("f", m2), ("f", v2)] + scalars + [("o", n)]))
+        calls.append(("mlx3d_adam_param", [("F", p), ("f", m2), ("f", v2)] + scalars))
+    x = finite_inputs()
+    n = x.size
+    for threads in THREADS:
+        calls.append(("mlx3d_all_finite", [("f", x), ("i", n), ("i", threads), ("b", 1)]))
+    for k, (at, bad) in enumerate((at, bad) for at in (0, n // 2, n - 1) for bad in (np.nan, np.inf, -np.inf)):
+        y = x.copy()
+        y[at] = bad
+        calls.append(("mlx3d_all_finite", [("f", y), ("i", n), ("i", THREADS[k % len(THREADS)]), ("b", 1)]))
+    x = activation_inputs()
+    for name in ("mlx3d_exp", "mlx3d_sigmoid"):
+        calls += [(name, [("f", x), ("i", x.size), ("i", threads), ("o", x.size)]) for threads in THREADS]
+    for _, linear, quats, log_scales in affine_problem():
+        n = len(quats)
+        calls += [("mlx3d_affine_covariances", [("d", linear), ("f", quats), ("f", log_scales), ("i", n), ("i", threads), ("o", 4 * n),
+                                                ("o", 3 * n)]) for threads in (1, 4)]
+    g = adam_steps(sh_rows=1)[0][1]
+    calls.append(("mlx3d_adam_moment", [("f", g), ("f", g), ("i", g.size), ("x", 0.9), ("i", 2), ("i", 1), ("o", g.size)]))  # errors
+    calls.append(("mlx3d_adam_param", [("f", g), ("f", g), ("f", g), ("i", g.size), ("x", 1e-3), ("x", 1e-15), ("x", 0.0), ("x", 1e-3),
+                                       ("i", 1), ("o", g.size)]))
+    return calls
+
+
+ARRAY_TYPES = {"f": "<f4", "u": "u1", "n": "<i4", "D": "<f8", "d": "<f8", "F": "<f4"}  # inputs (D, F: updated in place)
 
 
 def write_calls(path: Path, calls) -> None:
@@ -181,9 +488,9 @@ def read_results(path: Path, calls) -> list:
         at += length
         outs = []
         for kind, _ in args:
-            if kind in ("o", "l", "D"):
+            if kind in ("o", "l", "D", "F", "b"):
                 (count,) = struct.unpack_from("<Q", data, at)
-                dtype = np.dtype({"o": "<f4", "l": "<i8", "D": "<f8"}[kind])
+                dtype = np.dtype({"o": "<f4", "l": "<i8", "D": "<f8", "F": "<f4", "b": "u1"}[kind])
                 outs.append(np.frombuffer(data, dtype, count, at + 8).copy())
                 at += 8 + dtype.itemsize * count
         results.append((rc, error, outs))
@@ -194,7 +501,7 @@ def read_results(path: Path, calls) -> list:
 def run_driver(folder: Path, platform: str, runner: list[str], calls, tmp_path: Path) -> list:
     calls_file, out_file = tmp_path / f"calls_{platform}.bin", tmp_path / f"out_{platform}.bin"
     write_calls(calls_file, calls)
-    env = dict(os.environ)
+    env = dict(os.environ, MLX3D_RASTER_ISA="baseline")  # the rasterizer's gradients at the lane width every build has (4)
     if platform == "windows-x64":
         env.update(WINEPREFIX=str(OUT / "wineprefix"), WINEDEBUG="-all", WINEDLLOVERRIDES="mscoree,mshtml=")
     # run from the library's folder with bare names: every platform's loader finds them there
@@ -344,13 +651,14 @@ def test_linux_build_exports_the_api_alone(builds):
 
 
 @pytest.mark.parametrize("platform", ["windows-x64", "linux-arm64"])
-def test_other_platforms_builds_give_the_linux_builds_results(builds, platform, tmp_path):
+def test_other_platforms_builds_give_the_linux_builds_results(builds, platform, tmp_path, monkeypatch):
     runner = wine_command() if platform == "windows-x64" else qemu_command()
     if runner is None:
         pytest.skip(f"{'wine' if platform == 'windows-x64' else 'qemu-user and the arm64 C library'} not installed "
                     "(`make test-kernel-platforms` installs them)")
     base = sh_calls() + statistics_calls() + knn_calls()  # with oracles of their own below
-    calls = base + []  # the other areas' calls (add yours here): compared with the linux-x64 build's bits
+    use_library(monkeypatch, builds("linux-x64") / kernel_build.library_name("linux-x64"))  # for the calls' inputs
+    calls = base + [] + raster_calls() + projection_calls() + binning_calls() + photometric_calls() + optim_calls()  # the other areas' calls (add yours here): compared with the linux-x64 build's bits
     reference = run_driver(builds("linux-x64"), "linux-x64", [], calls, tmp_path)
     bad = len(sh_calls()) - 1
     assert reference[bad][0] == 1 and "degree must be 0..3, got 4" in reference[bad][1]
@@ -374,9 +682,465 @@ def test_other_platforms_builds_give_the_linux_builds_results(builds, platform, 
 
 
 # ---- rasterizer tests ----
+def test_rasterizer_in_process_is_cores(builds, monkeypatch):
+    """The library's forward pass (plain, with a background, over a surface layer) and gradients (means2d, conics,
+    features, opacities, background) are _core's bit for bit, at several thread counts and both lane widths."""
+    import mlx.core as mx
+
+    from mlx3d import kernel_library, native
+
+    if not native.available():
+        pytest.skip("compares with mlx3d._core")
+    use_library(monkeypatch, builds("linux-x64") / kernel_build.library_name("linux-x64"))
+    width, height, tile = RASTER_SIZE
+    means2d, conics, features, opac, offsets, ids, depths = (mx.array(a) for a in raster_inputs())
+    background = mx.array([0.2, 0.5, 0.9])
+    rng = np.random.default_rng(2)
+    cot = [mx.array(rng.normal(size=s).astype(np.float32)) for s in ((height, width, 3), (height, width))]
+    surface = (depths, mx.array(rng.random((height, width, 3)).astype(np.float32) * 0.5),
+               mx.array(rng.random((height, width)).astype(np.float32) * 0.5),
+               mx.array(np.where(rng.random((height, width)) < 0.3, np.inf, np.median(np.array(depths)))
+                        .astype(np.float32)))
+    assert kernel_library.rasterizer_simd_lanes() == native.core().rasterizer_simd_lanes()
+
+    def loss(fn, threads):
+        def f(m, c, ft, o, bg):
+            accum, alpha, _, _ = fn(m, c, ft, o, offsets, ids, width, height, tile, threads, bg)
+            return (accum * cot[0]).sum() + (alpha * cot[1]).sum()
+        return f
+
+    for isa in ("", "baseline"):
+        monkeypatch.setenv("MLX3D_RASTER_ISA", isa)
+        for threads in THREADS:
+            for bg in (None, background):
+                got = kernel_library.rasterize_forward(means2d, conics, features, opac, offsets, ids, width, height, tile, threads, bg)
+                want = native.core().rasterize_forward(means2d, conics, features, opac, offsets, ids, width, height, tile, threads, bg)
+                assert all(np.array(g).tobytes() == np.array(w).tobytes() for g, w in zip(got, want))
+            grads = [mx.grad(loss(fn, threads), argnums=(0, 1, 2, 3, 4))(means2d, conics, features, opac, background)
+                     for fn in (kernel_library.rasterize_forward, native.core().rasterize_forward)]
+            assert all(np.array(g).tobytes() == np.array(w).tobytes() for g, w in zip(*grads))
+            assert float(mx.abs(grads[0][0]).max()) > 0 and float(mx.abs(grads[0][4]).max()) > 0
+            got = kernel_library.rasterize_forward_surface(means2d, conics, features, opac, offsets, ids, *surface, width, height, tile,
+                                                           threads)
+            want = native.core().rasterize_forward_surface(means2d, conics, features, opac, offsets, ids, *surface, width, height, tile,
+                                                           threads)
+            assert all(np.array(g).tobytes() == np.array(w).tobytes() for g, w in zip(got, want))
+    with pytest.raises(ValueError, match=r"rasterize: conics must have shape \(\d+, 3\), got"):
+        kernel_library.rasterize_forward(means2d, conics[:, :2], features, opac, offsets, ids, width, height, tile)
+    with pytest.raises(ValueError, match=r"rasterize: tile_offsets must have shape \(21,\), got \(20,\)"):
+        kernel_library.rasterize_forward(means2d, conics, features, opac, offsets[1:], ids, width, height, tile)
+    with pytest.raises(TypeError, match="flatten_ids must be int32, got mlx.core.float32"):
+        kernel_library.rasterize_forward(means2d, conics, features, opac, offsets, ids.astype(mx.float32), width, height, tile)
+
+
 # ---- projection and tile binning tests ----
+def test_binning_in_process_is_cores(builds, monkeypatch):
+    """The library's tile binning and extents are _core's, entry for entry, at several thread counts; bad inputs
+    are errors that name them."""
+    import mlx.core as mx
+
+    from mlx3d import kernel_library, native
+
+    if not native.available():
+        pytest.skip("compares with mlx3d._core")
+    use_library(monkeypatch, builds("linux-x64") / kernel_build.library_name("linux-x64"))
+    width, height, tile = RASTER_SIZE
+    means2d, conics, _, opac, _, _, depths = raster_inputs()
+    radii = np.full(len(means2d), 9.0, np.float32)
+    radii[::7] = 0.0
+    for extents in ((None, None), (conics, opac)):
+        want_ext = native.core().tile_extents(radii, *extents)
+        assert kernel_library.tile_extents(radii, *extents).tobytes() == want_ext.tobytes()
+        for threads in THREADS:
+            got = kernel_library.bin_tiles(means2d, radii, depths, width, height, tile, threads, *extents)
+            want = native.core().bin_tiles(means2d, radii, depths, width, height, tile, threads, *extents)
+            assert all(g.dtype == mx.int32 and np.array_equal(np.array(g), np.array(w)) for g, w in zip(got, want))
+            assert len(got[1]) > len(means2d)
+    empty = kernel_library.bin_tiles(means2d, np.zeros_like(radii), depths, width, height, tile)
+    assert len(empty[1]) == 0 and not np.array(empty[0]).any()
+    with pytest.raises(ValueError, match="give conics and opacities together"):
+        kernel_library.bin_tiles(means2d, radii, depths, width, height, tile, 0, conics)
+    with pytest.raises(ValueError, match=r"depths \(one per Gaussian\) must hold 500 elements, got 499"):
+        kernel_library.bin_tiles(means2d, radii, depths[1:], width, height, tile)
+
+
+def test_projection_in_process_is_cores(builds, monkeypatch):
+    """The library's projection and its gradients (means, quats, scales) are _core's bit for bit at several thread
+    counts, with and without antialiasing; bad inputs are named."""
+    import mlx.core as mx
+
+    from mlx3d import kernel_library, native
+
+    if not native.available():
+        pytest.skip("compares with mlx3d._core")
+    use_library(monkeypatch, builds("linux-x64") / kernel_build.library_name("linux-x64"))
+    means, quats, scales, camera = projection_inputs()
+    means, quats, scales = mx.array(means), mx.array(quats), mx.array(scales)
+    n = means.shape[0]
+    rng = np.random.default_rng(4)
+    cot = [mx.array(rng.normal(size=shape).astype(np.float32)) for shape in ((n, 2), (n, 3), (n,), (n,))]
+    viewmat = [float(v) for v in np.asarray(camera.viewmat, np.float64).reshape(-1)]
+    for antialias in (False, True):
+        for threads in THREADS:
+            def call(fn, m, q, s):
+                return fn(m, q, s, viewmat, camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height, camera.near,
+                          camera.far, 0.3, antialias, threads)
+
+            def loss(fn):
+                def f(m, q, s):
+                    m2, conics, _, depths, comp = call(fn, m, q, s)
+                    return (m2 * cot[0]).sum() + (conics * cot[1]).sum() + (depths * cot[2]).sum() + (comp * cot[3]).sum()
+                return f
+
+            got, want = call(kernel_library.project_ewa, means, quats, scales), call(native.core().project_ewa, means, quats, scales)
+            assert all(np.array(g).tobytes() == np.array(w).tobytes() for g, w in zip(got, want))
+            assert int((np.array(got[2]) > 0).sum()) > n // 2  # most of the file is in view
+            grads = [mx.grad(loss(fn), argnums=(0, 1, 2))(means, quats, scales)
+                     for fn in (kernel_library.project_ewa, native.core().project_ewa)]
+            assert all(np.array(g).tobytes() == np.array(w).tobytes() for g, w in zip(*grads))
+    with pytest.raises(ValueError, match=r"project_ewa: quats must have shape \(500, 4\), got \(500, 3\)"):
+        kernel_library.project_ewa(means, quats[:, :3], scales, viewmat, 100, 100, 36, 26, 72, 52, 0.01, 100)
+    with pytest.raises(ValueError, match="viewmat must have 16 entries"):
+        kernel_library.project_ewa(means, quats, scales, viewmat[:12], 100, 100, 36, 26, 72, 52, 0.01, 100)
+
+
 # ---- photometric loss tests ----
+def photometric_value_and_grads(fn, x, y, weights, lam, taps, threads):
+    """(loss, dloss/dimg, dloss/dref) as numpy of a photometric_loss with _core's signature."""
+    import mlx.core as mx
+
+    value, grads = mx.value_and_grad(lambda a, b: fn(a, b, weights, lam, taps, threads), argnums=(0, 1))(x, y)
+    return np.array(value), np.array(grads[0]), np.array(grads[1])
+
+
+def test_photometric_in_process_is_cores_and_the_reference(builds, monkeypatch):
+    """The loss and both gradients, and the MSE, bit for bit _core's at 1, 2 and 4 threads, with and without weights;
+    close to mlx3d.training.metrics' pure MLX expression evaluated in float64 (its float32 graph, whose means are
+    float32 sums, is 10 times further from it on the render), and the MSE to numpy's float64 mean."""
+    import mlx.core as mx
+
+    from mlx3d import kernel_library, native
+    from mlx3d.training import metrics
+
+    use_library(monkeypatch, builds("linux-x64") / kernel_build.library_name("linux-x64"))
+    core = native.core() if native.available() else None
+    taps = [float(t) for t in photometric_taps()]
+    for name, x, y, w in photometric_cases():
+        x, y, w = mx.array(x), mx.array(y), mx.array(w)
+        for weights in (None, w):
+            w64 = None if weights is None else weights.astype(mx.float64)
+            for lam in (0.2, 1.0) if name == "render" else (0.2,):
+                ref = mx.value_and_grad(lambda a, b: metrics.photometric_loss(a, b, lam, w64, backend="reference", compiled=False),
+                                        argnums=(0, 1))(x.astype(mx.float64), y.astype(mx.float64))
+                ref = [np.array(ref[0]), *(np.array(g) for g in ref[1])]
+                for threads in THREADS:
+                    got = photometric_value_and_grads(kernel_library.photometric_loss, x, y, weights, lam, taps, threads)
+                    where = f"{name}, weights {weights is not None}, lambda {lam}, {threads} threads"
+                    assert float(got[0]) == pytest.approx(float(ref[0]), rel=5e-5), where  # float32 per pixel
+                    for g, r in zip(got[1:], ref[1:]):
+                        np.testing.assert_allclose(g, r, rtol=0, atol=5e-5 * np.abs(r).max(), err_msg=where)
+                    if core is not None:
+                        want = photometric_value_and_grads(core.photometric_loss, x, y, weights, lam, taps, threads)
+                        assert all(g.tobytes() == c.tobytes() for g, c in zip(got, want)), where
+            for clip in (False, True):
+                img = x * 1.4 - 0.2
+                shown = np.clip(np.array(img, np.float64), 0, 1) if clip else np.array(img, np.float64)
+                per_pixel = ((shown - np.array(y, np.float64)) ** 2).mean(-1)
+                wp = np.ones(per_pixel.shape) if weights is None else np.array(weights, np.float64)
+                for threads in THREADS:
+                    got = np.array(kernel_library.mse(img, y, weights, clip, threads))
+                    pure = metrics.mse(img.astype(mx.float64), y.astype(mx.float64), w64, clip=clip, backend="reference")
+                    assert float(got) == pytest.approx(float(pure), rel=1e-6)
+                    assert float(got) == pytest.approx((per_pixel * wp).sum() / wp.sum(), rel=1e-6)
+                    if core is not None:
+                        assert got.tobytes() == np.array(core.mse(img, y, weights, clip, threads)).tobytes()
+
+
+def test_photometric_gradients_run_only_what_is_differentiated(builds, monkeypatch):
+    """The render's gradient is the loss pass's own (one kernel call); the photo's runs the kernel again only when
+    asked for; the weights and the MSE have no gradient (errors, as _core's)."""
+    import mlx.core as mx
+
+    from mlx3d import kernel_library, native
+    from mlx3d.kernel_library import photometric
+
+    use_library(monkeypatch, builds("linux-x64") / kernel_build.library_name("linux-x64"))
+    _, x, y, w = (a if isinstance(a, str) else mx.array(a) for a in photometric_cases()[1])
+    taps = [float(t) for t in photometric_taps()]
+    calls = []
+
+    def counting(name, *args):
+        calls.append(name)
+        return kernel_library._call(name, *args)
+
+    monkeypatch.setattr(photometric, "_call", counting)
+    loss = kernel_library.photometric_loss
+    value, grad = mx.value_and_grad(lambda a: loss(a, y, w, 0.2, taps))(x)
+    assert calls == ["mlx3d_photometric_loss"]
+    both = mx.value_and_grad(lambda a, b: loss(a, b, w, 0.2, taps), argnums=(0, 1))(x, y)
+    assert calls == ["mlx3d_photometric_loss"] * 3
+    assert np.array(value).tobytes() == np.array(both[0]).tobytes() and np.array(grad).tobytes() == np.array(both[1][0]).tobytes()
+    cores = [native.core()] if native.available() else []
+    for fn in [loss] + [c.photometric_loss for c in cores]:
+        with pytest.raises(RuntimeError, match="photometric_loss: the gradient with respect to the mask is not implemented"):
+            mx.eval(mx.grad(lambda m: fn(x, y, m, 0.2, taps), argnums=0)(w))
+    for fn in [kernel_library.mse] + [c.mse for c in cores]:
+        with pytest.raises(RuntimeError, match="mse on the CPU kernel is a metric and has no gradient"):
+            mx.eval(mx.grad(lambda a: fn(a, y, None))(x))
+
+
+def test_photometric_bad_calls_are_errors_that_name_the_problem(builds, monkeypatch):
+    import mlx.core as mx
+
+    from mlx3d import kernel_library
+    from mlx3d.kernel_library import _call, _ptr
+
+    use_library(monkeypatch, builds("linux-x64") / kernel_build.library_name("linux-x64"))
+    _, x, y, w = (a if isinstance(a, str) else mx.array(a) for a in photometric_cases()[1])
+    taps = [float(t) for t in photometric_taps()]
+    loss, mse = kernel_library.photometric_loss, kernel_library.mse
+    for fn, extra in ((loss, (0.2, taps)), (mse, ())):
+        op = "photometric_loss" if fn is loss else "mse"
+        with pytest.raises(ValueError, match=rf"{op}: img and ref must be \(H, W, C\) of one shape, got \(37, 53, 3\) and \(37, 52, 3\)"):
+            fn(x, y[:, 1:], None, *extra)
+        with pytest.raises(ValueError, match=rf"{op}: img and ref must be \(H, W, C\) of one shape, got \(37, 53\) and \(37, 53\)"):
+            fn(x[..., 0], y[..., 0], None, *extra)
+        with pytest.raises(TypeError, match=f"{op}: images must be float32 .* got mlx.core.float16 and mlx.core.float32"):
+            fn(x.astype(mx.float16), y, None, *extra)
+        with pytest.raises(ValueError, match=rf"{op}: weights must be float32 \(H, W\) = \(37, 53\), got mlx.core.float32 \(53, 37\)"):
+            fn(x, y, w.T, *extra)
+        with pytest.raises(ValueError, match=rf"{op}: the images must not be empty, got \(0, 53, 3\)"):
+            fn(x[:0], y[:0], None, *extra)
+        with pytest.raises(ValueError, match="num_threads must be >= 0"):
+            fn(x, y, None, *(extra or (False,)), -1)
+    with pytest.raises(ValueError, match="photometric_loss: taps must have an odd, positive length"):
+        loss(x, y, None, 0.2, taps[:10])
+    with pytest.raises(ValueError, match=r"photometric_loss: lambda_dssim must be in \[0, 1\]"):
+        loss(x, y, None, 1.5, taps)
+    # strided inputs are read through a copy: the same bits
+    xt, yt = mx.swapaxes(mx.swapaxes(x, 0, 1) * 1, 0, 1), mx.swapaxes(mx.swapaxes(y, 0, 1) * 1, 0, 1)
+    assert np.array(loss(xt, yt, w, 0.2, taps)).tobytes() == np.array(loss(x, y, w, 0.2, taps)).tobytes()
+    # the C functions check their arguments themselves
+    a, out = np.zeros((4, 5, 3), np.float32), np.zeros(60, np.float32)
+    t = photometric_taps()
+    with pytest.raises(RuntimeError, match=r"mlx3d_photometric_loss: lambda must be in \[0, 1\], got 1.500000"):
+        _call("mlx3d_photometric_loss", _ptr(a), _ptr(a), None, 4, 5, 3, 1.5, _ptr(t), 11, 1, None, _ptr(out), _ptr(out))
+    with pytest.raises(RuntimeError, match=r"mlx3d_photometric_loss: taps must have an odd, positive length, got 0"):
+        _call("mlx3d_photometric_loss", _ptr(a), _ptr(a), None, 4, 5, 3, 0.2, _ptr(t), 0, 1, None, _ptr(out), _ptr(out))
+    with pytest.raises(RuntimeError, match=r"mlx3d_mse: the image must be \(H, W, C\) with H, W, C >= 1, got \(0, 5, 3\)"):
+        _call("mlx3d_mse", _ptr(a), _ptr(a), None, 0, 5, 3, 0, 1, _ptr(out))
+    with pytest.raises(RuntimeError, match=r"mlx3d_mse: a null pointer \(only weights may be NULL\)"):
+        _call("mlx3d_mse", _ptr(a), None, None, 4, 5, 3, 0, 1, _ptr(out))
+
+
+def test_photometric_driver_calls_are_cores(builds, monkeypatch, tmp_path):
+    """The calls the other platforms' builds run (photometric_calls), run by the linux-x64 driver: bit for bit _core's
+    losses, gradients and MSEs (the in-process library's where _core is missing), and the two bad calls' errors."""
+    import mlx.core as mx
+
+    from mlx3d import kernel_library, native
+
+    use_library(monkeypatch, builds("linux-x64") / kernel_build.library_name("linux-x64"))
+    api = native.core() if native.available() else kernel_library
+    calls = photometric_calls()
+    results = run_driver(builds("linux-x64"), "linux-x64", [], calls, tmp_path)
+    for (name, args), (rc, error, outs) in zip(calls[:-2], results[:-2]):
+        x, y, w = (mx.array(a[1]) if a[1].size else None for a in args[:3])
+        if name == "mlx3d_mse":
+            assert rc == 0 and outs[0].tobytes() == np.array(api.mse(x, y, w, bool(args[6][1]), args[7][1])).tobytes()
+            continue
+        lam, taps, threads = args[6][1], [float(t) for t in args[7][1]], args[9][1]
+        value, grad = mx.value_and_grad(lambda a: api.photometric_loss(a, y, w, lam, taps, threads))(x)
+        assert rc == 0 and outs[1].tobytes() == np.array(value).reshape(1).tobytes() and outs[2].tobytes() == np.array(grad).ravel().tobytes()
+    assert [r[:2] for r in results[-2:]] == [(1, "mlx3d_photometric_loss: lambda must be in [0, 1], got 1.500000"),
+                                             (1, "mlx3d_photometric_loss: taps must have an odd, positive length, got 10")]
+
+
 # ---- optimizer and activations tests ----
+def optim_library(builds, monkeypatch):
+    """(mlx3d.kernel_library on the linux-x64 build, mlx3d._core or None)."""
+    from mlx3d import kernel_library, native
+
+    use_library(monkeypatch, builds("linux-x64") / kernel_build.library_name("linux-x64"))
+    assert kernel_library.available(), kernel_library.failure()
+    return kernel_library, native.core() if native.available() else None
+
+
+def same_bits(a, b) -> bool:
+    return np.asarray(a).tobytes() == np.asarray(b).tobytes()
+
+
+def test_adam_in_process_is_numpys_and_cores(builds, monkeypatch):
+    """Three steps of four parameters (the SH rest coefficients 270000 floats: four threads' work) at 1, 2 and 4
+    threads: p', m', v' bit for bit numpy's float32 expression and _core's; the arrays passed in keep their values."""
+    import mlx.core as mx
+
+    lib, core = optim_library(builds, monkeypatch)
+    for p, g, m, v, lr, c1, c2, want in adam_steps(sh_rows=6000):
+        args = [mx.array(a) for a in (p, g, m, v)]
+        for threads in THREADS:
+            got = lib.adam_step(*args, lr, *ADAM_BETAS, ADAM_EPS, c1, c2, threads)
+            assert [a.shape for a in got] == [args[0].shape] * 3 and all(a.dtype == mx.float32 for a in got)
+            assert all(same_bits(a, w) for a, w in zip(got, want)), (p.shape, threads)
+            if core is not None:
+                assert all(same_bits(a, c) for a, c in zip(got, core.adam_step(*args, lr, *ADAM_BETAS, ADAM_EPS, c1, c2, threads)))
+        assert all(same_bits(a, b) for a, b in zip(args, (p, g, m, v)))
+    p, g, _, _, lr, c1, c2, want = adam_steps(sh_rows=1)[0]  # as Adam.update's first step (zeros_like moments); p transposed
+    zeros = mx.zeros_like(mx.array(g))
+    got = lib.adam_step(mx.array(p.T.copy()).T, mx.array(g), zeros, zeros, lr, *ADAM_BETAS, ADAM_EPS, c1, c2)
+    assert all(same_bits(a, w) for a, w in zip(got, want))
+    empty = mx.zeros((0, 3))
+    assert [a.shape for a in lib.adam_step(empty, empty, empty, empty, 1e-3, *ADAM_BETAS, ADAM_EPS, 0.1, 0.001)] == [(0, 3)] * 3
+
+
+def test_all_finite_in_process_is_cores(builds, monkeypatch):
+    """Arrays of every finite magnitude, then NaN, inf or -inf first, in the middle or last of the first or the last
+    array (300000 floats: four threads' work), other dtypes (read as float32) and no arrays, at 1, 2 and 4 threads."""
+    import mlx.core as mx
+
+    lib, core = optim_library(builds, monkeypatch)
+    x = finite_inputs(300_000)
+    small = finite_inputs(1000, seed=3).reshape(10, 100)
+    cases = [([x, small], True), ([], True)]
+    for which in (0, 1):
+        for at in (0, "middle", -1):
+            for bad in (np.nan, np.inf, -np.inf):
+                arrays = [x.copy(), small.copy()]
+                flat = arrays[which].reshape(-1)
+                flat[flat.size // 2 if at == "middle" else at] = bad
+                cases.append((arrays, False))
+    cases = [([mx.array(a) for a in arrays], want) for arrays, want in cases]
+    cases += [([mx.array([1.0, np.inf], mx.float16)], False), ([mx.array([65504.0], mx.float16), mx.array([1, 2])], True),
+              ([mx.array(x)[::3], mx.array(small).T], True)]
+    for arrays, want in cases:
+        for threads in THREADS:
+            got = lib.all_finite(arrays, threads)
+            assert got.dtype == mx.bool_ and got.shape == () and bool(got) == want
+            if core is not None:
+                assert bool(core.all_finite(arrays, threads)) == want
+
+
+def test_activation_in_process_is_mlxs_and_cores(builds, monkeypatch):
+    """exp and sigmoid over the float range (every 1024th float32 bit pattern, the edges and the floats around them,
+    typical values; 4.2 million, all threads busy) at 1, 2 and 4 threads: values and gradients bit for bit mx.exp /
+    mx.sigmoid's and _core's, NaN payloads included."""
+    import mlx.core as mx
+
+    lib, core = optim_library(builds, monkeypatch)
+    x = mx.array(activation_inputs(stride=1024))
+    cot = mx.array(np.random.default_rng(37).normal(size=x.shape).astype(np.float32))
+    for kind in ("exp", "sigmoid"):
+        def run(fn):
+            (y,), (g,) = mx.vjp(fn, [x], [cot])
+            return np.array(y), np.array(g)
+
+        want = run(getattr(mx, kind))
+        for threads in THREADS:
+            got = run(lambda a: lib.activation(a, kind, threads))
+            assert same_bits(got[0], want[0]) and same_bits(got[1], want[1]), (kind, threads)
+            if core is not None:
+                assert same_bits(got[0], np.array(core.activation(x, kind, threads)))
+        shaped = x[: 3 * 1000 * 4].reshape(3, 1000, 4)[:, ::2]  # a strided 3-D view: read through a copy
+        assert same_bits(lib.activation(shaped, kind), getattr(mx, kind)(shaped))
+
+
+def test_affine_in_process_is_cores_and_near_numpys(builds, monkeypatch):
+    """The hard maps of test_transforms over 20000 Gaussians (five threads' blocks) at 1, 2 and 4 threads: bit for bit
+    _core's, the same bits at every thread count, and the covariances of numpy's reference (mlx3d.transforms) to 1e-5."""
+    from mlx3d.transforms import _covariances_numpy, covariances
+
+    lib, core = optim_library(builds, monkeypatch)
+    for name, linear, quats, log_scales in affine_problem(20000):
+        outs = []
+        for threads in THREADS:
+            q, s = np.empty_like(quats), np.empty_like(log_scales)
+            lib.affine_covariances(linear, quats, log_scales, q, s, threads)
+            outs.append((q, s))
+            if core is not None:
+                qc, sc = np.empty_like(quats), np.empty_like(log_scales)
+                core.affine_covariances(linear, quats, log_scales, qc, sc, threads)
+                assert same_bits(q, qc) and same_bits(s, sc), (name, threads)
+        assert all(same_bits(q, outs[0][0]) and same_bits(s, outs[0][1]) for q, s in outs)
+        q, s = outs[0]
+        q_ref, s_ref = _covariances_numpy(linear, quats, log_scales)
+        assert np.isfinite(q).all() and np.isfinite(s).all() and (q[:, 0] >= 0).all()
+        np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-6)
+        c, c_ref = covariances(q, s), covariances(q_ref, s_ref)
+        assert (np.linalg.norm(c - c_ref, axis=(1, 2)) / np.linalg.norm(c_ref, axis=(1, 2))).max() < 1e-5, name
+        assert (np.diff(s, axis=1) <= 0).all()
+        np.testing.assert_allclose(s, np.sort(s_ref, axis=1)[:, ::-1], atol=1e-5)
+
+
+def test_optim_bad_calls_are_errors_that_name_the_problem(builds, monkeypatch):
+    import mlx.core as mx
+
+    lib, _ = optim_library(builds, monkeypatch)
+    p = mx.zeros((5, 3))
+    scalars = (1e-3, *ADAM_BETAS, ADAM_EPS, 0.1, 0.001)
+    with pytest.raises(ValueError, match=r"adam_step: p, g, m and v must have the same shape, got \(5, 3\) and \(4, 3\)"):
+        lib.adam_step(p, p, p[:4], p, *scalars)
+    with pytest.raises(TypeError, match="adam_step: g must be float32, got mlx.core.float16"):
+        lib.adam_step(p, p.astype(mx.float16), p, p, *scalars)
+    with pytest.raises(ValueError, match="adam_step: the bias corrections c1, c2 must be > 0, got 0.1, 0.0"):
+        lib.adam_step(p, p, p, p, *scalars[:-1], 0.0)
+    with pytest.raises(ValueError, match="num_threads must be >= 0"):
+        lib.adam_step(p, p, p, p, *scalars, -1)
+    with pytest.raises(ValueError, match="num_threads must be >= 0"):
+        lib.all_finite([p], -2)
+    with pytest.raises(ValueError, match="activation: kind must be 'exp' or 'sigmoid', got 'tanh'"):
+        lib.activation(p, "tanh")
+    with pytest.raises(TypeError, match="activation: x must be float32, got mlx.core.float16"):
+        lib.activation(p.astype(mx.float16), "exp")
+    q, s = np.zeros((5, 4), np.float32), np.zeros((5, 3), np.float32)
+    with pytest.raises(ValueError, match=r"affine_covariances: linear must have shape \(3, 3\), got \(2, 2\)"):
+        lib.affine_covariances(np.eye(2), q, s, q.copy(), s.copy())
+    with pytest.raises(ValueError, match=r"affine_covariances: log_scales must have shape \(5, 3\) as quats, got \(4, 3\)"):
+        lib.affine_covariances(np.eye(3), q, s[1:], q.copy(), s.copy())
+    with pytest.raises(ValueError, match=r"affine_covariances: quats_out must be a writable C-contiguous float32 \(5, 4\)"):
+        lib.affine_covariances(np.eye(3), q, s, q.astype(np.float64), s.copy())
+    # the C functions' own checks, with their names
+    from mlx3d.kernel_library import _call, _ptr
+
+    x = np.zeros(10, np.float32)
+    with pytest.raises(RuntimeError, match=r"mlx3d_adam_moment: squared must be 0 \(first moment\) or 1 \(second moment\), got 2"):
+        _call("mlx3d_adam_moment", _ptr(x), _ptr(x), 10, 0.9, 2, 1, _ptr(np.zeros(10, np.float32)))
+    with pytest.raises(RuntimeError, match=r"mlx3d_adam_moment: out must be x \(in place\) or not overlap it"):
+        _call("mlx3d_adam_moment", _ptr(np.zeros(9, np.float32)), _ptr(x[:9]), 9, 0.9, 0, 1, _ptr(x[1:]))
+    with pytest.raises(RuntimeError, match="mlx3d_adam_param: p_out must not overlap m or v"):
+        _call("mlx3d_adam_param", _ptr(x[:5]), _ptr(x[5:]), _ptr(x[5:]), 5, 1e-3, 1e-15, 0.1, 0.001, 1, _ptr(x[5:]))
+    with pytest.raises(RuntimeError, match="mlx3d_exp: the element count must be >= 0, got -1"):
+        _call("mlx3d_exp", _ptr(x), -1, 1, _ptr(x))
+    with pytest.raises(RuntimeError, match=r"mlx3d_affine_covariances: threads must be >= 0 \(0 = every hardware thread\), got -1"):
+        _call("mlx3d_affine_covariances", _ptr(np.eye(3)), _ptr(q), _ptr(s), 5, -1, _ptr(q.copy()), _ptr(s.copy()))
+
+
+def test_optim_driver_calls_are_numpys_mlxs_and_the_in_process_librarys(builds, monkeypatch, tmp_path):
+    """The linux-x64 driver's results of optim_calls (what the other platforms' builds are held to): Adam numpy's
+    float32 expression, into fresh outputs and in place; all_finite right; exp and sigmoid mx.exp's and mx.sigmoid's;
+    the affine re-decomposition the in-process library's; the bad calls' errors."""
+    import mlx.core as mx
+
+    lib, _ = optim_library(builds, monkeypatch)
+    calls = optim_calls()
+    results = run_driver(builds("linux-x64"), "linux-x64", [], calls, tmp_path)
+    for (name, args), (rc, error, outs) in zip(calls[:-2], results[:-2]):
+        assert rc == 0 and error == "", name
+        a = [value for _, value in args]
+        if name == "mlx3d_adam_moment":
+            assert same_bits(outs[0], numpy_moment(a[0], a[1], a[3], a[4]))
+        elif name == "mlx3d_adam_param":
+            assert same_bits(outs[0], numpy_param(a[0], a[1], a[2], *a[4:8]))
+        elif name == "mlx3d_all_finite":
+            assert list(outs[0]) == [int(np.isfinite(a[0]).all())]
+        elif name in ("mlx3d_exp", "mlx3d_sigmoid"):
+            assert same_bits(outs[0], getattr(mx, name[6:])(mx.array(a[0])))
+        else:
+            q, s = np.empty_like(a[1]), np.empty_like(a[2])
+            lib.affine_covariances(a[0], a[1], a[2], q, s)
+            assert same_bits(outs[0], q) and same_bits(outs[1], s)
+    (rc0, error0, _), (rc1, error1, _) = results[-2:]
+    assert rc0 == 1 and error0 == "mlx3d_adam_moment: squared must be 0 (first moment) or 1 (second moment), got 2"
+    assert rc1 == 1 and error1.startswith("mlx3d_adam_param: the bias corrections c1, c2 must be > 0")
 
 
 def test_macos_build_is_an_arm64_library_exporting_the_api(builds):

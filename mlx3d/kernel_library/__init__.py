@@ -26,7 +26,6 @@ signatures it calls with :func:`register`. Their functions are re-exported here.
 from __future__ import annotations
 
 import ctypes
-import functools
 import logging
 import os
 import sys
@@ -78,7 +77,7 @@ def library_path() -> Path:
     """The file :func:`library` loads: ``MLX3D_KERNELS`` when set, else this platform's name in mlx3d/_kernels/."""
     if os.environ.get(PATH_ENV):
         return Path(os.environ[PATH_ENV])
-    return Path(__file__).resolve().parent / "_kernels" / LIBRARY_NAMES.get(sys.platform, "libmlx3d_kernels.so")
+    return Path(__file__).resolve().parent.parent / "_kernels" / LIBRARY_NAMES.get(sys.platform, "libmlx3d_kernels.so")
 
 
 def _load() -> ctypes.CDLL:
@@ -140,20 +139,23 @@ def _contiguous(a, dtype) -> np.ndarray:
     return np.ascontiguousarray(np.asarray(mx.stop_gradient(a) if isinstance(a, mx.array) else a), dtype=dtype)
 
 
-def _host(a: mx.array, name: str, shape: tuple) -> np.ndarray:
-    """``a`` evaluated as a C-contiguous float32 numpy array (its own memory when it is one already), checked
+def _host(a: mx.array, name: str, shape: tuple, dtype=mx.float32) -> np.ndarray:
+    """``a`` evaluated as a C-contiguous numpy array of ``dtype`` (its own memory when it is one already), checked
     against ``shape`` (None: any size on that axis)."""
-    if a.dtype != mx.float32:
-        raise TypeError(f"{name} must be float32, got {a.dtype}")
+    if a.dtype != dtype:
+        raise TypeError(f"{name} must be {str(dtype).rsplit('.', 1)[-1]}, got {a.dtype}")
     if a.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, a.shape)):
         want = "(" + ", ".join("any" if s is None else str(s) for s in shape) + ("," if len(shape) == 1 else "") + ")"
         raise ValueError(f"{name} must have shape {want}, got {tuple(a.shape)}")
-    return _contiguous(a, np.float32)
+    return _contiguous(a, _NUMPY[dtype])
 
 
-def _output(shape: tuple) -> tuple[mx.array, np.ndarray]:
-    """A fresh float32 MLX array of ``shape`` and a writable numpy view of its memory, for a kernel to fill."""
-    out = mx.zeros(shape, dtype=mx.float32)
+_NUMPY = {mx.float32: np.float32, mx.int32: np.int32}
+
+
+def _output(shape: tuple, dtype=mx.float32) -> tuple[mx.array, np.ndarray]:
+    """A fresh MLX array of ``shape`` and ``dtype`` and a writable numpy view of its memory, for a kernel to fill."""
+    out = mx.zeros(shape, dtype=dtype)
     mx.eval(out)
     view = np.asarray(out)
     assert view.flags.c_contiguous and view.flags.writeable
@@ -174,6 +176,20 @@ def _call(name: str, *args) -> None:
         raise RuntimeError(lib.mlx3d_last_error().decode())
 
 
+def _reverse_mode_only(fn, name: str):
+    """Give ``fn`` (an ``mx.custom_function``) a jvp and a vmap that raise, naming ``name``, as _core's primitives do:
+    MLX would otherwise trace the forward function, whose kernel call it cannot see, and give zero tangents."""
+    def jvp(primals, tangents):
+        raise RuntimeError(f"{name}: forward-mode differentiation (jvp) is not implemented; use mx.grad / mx.vjp.")
+
+    def vmap(inputs, axes):
+        raise RuntimeError(f"{name}: vmap is not implemented.")
+
+    fn.jvp(jvp)
+    fn.vmap(vmap)
+    return fn
+
+
 def _numpy_in(a, dtype, name: str, size: int) -> np.ndarray:
     """``_contiguous(a, dtype)``, which must hold ``size`` elements."""
     a = _contiguous(a, dtype)
@@ -190,8 +206,15 @@ def _threads(num_threads) -> int:
 
 
 # The areas (each registers its signatures at import). Keep sorted.
+from .affine import affine_covariances  # noqa: E402
 from .knn import KDTree  # noqa: E402
+from .optim import activation, adam_step, all_finite  # noqa: E402
+from .photometric import mse, photometric_loss  # noqa: E402
+from .render import (bin_tiles, project_ewa, rasterize_forward, rasterize_forward_surface, rasterizer_simd_lanes,  # noqa: E402
+                     tile_extents)
 from .sh import sh_colors  # noqa: E402
 from .statistics import add_screen_statistics  # noqa: E402
 
-__all__ += ["KDTree", "sh_colors", "add_screen_statistics"]
+__all__ += ["KDTree", "sh_colors", "add_screen_statistics", "mse", "photometric_loss", "adam_step", "all_finite", "activation",
+            "affine_covariances", "rasterize_forward", "rasterize_forward_surface", "rasterizer_simd_lanes",
+            "project_ewa", "bin_tiles", "tile_extents"]

@@ -16,7 +16,8 @@ import functools
 import mlx.core as mx
 import numpy as np
 
-from . import _call, _contiguous, _f32p, _f64, _host, _i64, _int, _output, _ptr, _threads, _u8p, register
+from . import (_call, _contiguous, _f32p, _f64, _host, _i64, _int, _output, _ptr, _reverse_mode_only, _threads, _u8p,
+              register)
 
 register({
     "mlx3d_adam_moment": ([_f32p, _f32p, _i64, _f64, _int, _int, _f32p], _int),
@@ -83,7 +84,7 @@ def _activation_function(kind: str, threads: int):
         cot = cotangent[0] if isinstance(cotangent, (list, tuple)) else cotangent
         return (cot * y,) if kind == "exp" else (cot * (y * (1.0 - y)),)
 
-    return activate
+    return _reverse_mode_only(activate, "activation")
 
 
 def activation(x: mx.array, kind: str, num_threads: int = 0) -> mx.array:

@@ -14,7 +14,7 @@ import functools
 import mlx.core as mx
 import numpy as np
 
-from . import _call, _f32, _f32p, _host, _i64, _int, _output, _ptr, _threads, register
+from . import _call, _f32, _f32p, _host, _i64, _int, _output, _ptr, _reverse_mode_only, _threads, register
 
 register({
     "mlx3d_photometric_loss": ([_f32p, _f32p, _f32p, _i64, _i64, _i64, _f32, _f32p, _i64, _int, _f32p, _f32p, _f32p], _int),
@@ -85,7 +85,7 @@ def _loss_function(lam: float, taps: tuple, threads: int):
     def mask_term_vjp(primals, cotangent, output):
         raise RuntimeError("photometric_loss: the gradient with respect to the mask is not implemented.")
 
-    return render_term, photo_term, mask_term
+    return tuple(_reverse_mode_only(f, "photometric_loss") for f in (render_term, photo_term, mask_term))
 
 
 def photometric_loss(img: mx.array, ref: mx.array, weights, lambda_dssim: float, taps, num_threads: int = 0) -> mx.array:
@@ -118,7 +118,7 @@ def _mse_function(clip: bool, threads: int):
     def mse_vjp(primals, cotangent, output):
         raise RuntimeError("mse on the CPU kernel is a metric and has no gradient; use backend='reference' to differentiate it.")
 
-    return mse
+    return _reverse_mode_only(mse, "mse")
 
 
 def mse(img: mx.array, ref: mx.array, weights, clip: bool = False, num_threads: int = 0) -> mx.array:

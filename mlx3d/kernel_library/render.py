@@ -16,7 +16,8 @@ import functools
 import mlx.core as mx
 import numpy as np
 
-from . import _call, _contiguous, _f32, _f32p, _host, _i32p, _i64, _int, _numpy_in, _output, _ptr, _threads, library, register
+from . import (_call, _contiguous, _f32, _f32p, _host, _i32p, _i64, _int, _numpy_in, _output, _ptr,
+              _reverse_mode_only, _threads, library, register)
 
 register({
     "mlx3d_rasterize_forward": ([_f32p, _f32p, _f32p, _f32p, _i32p, _i32p, _i64, _int, _i64, _int, _int, _int, _f32p, _int,
@@ -93,7 +94,7 @@ def _rasterizer(width: int, height: int, tile_size: int, threads: int, with_back
             result.append(mx.sum(cotangents[0] * (1.0 - outputs[1])[..., None], axis=(0, 1)))
         return tuple(result)
 
-    return rasterize
+    return _reverse_mode_only(rasterize, "rasterize_forward")
 
 
 def rasterize_forward(means2d, conics, features, opacities, tile_offsets, flatten_ids, width: int, height: int,
@@ -174,7 +175,7 @@ def _projector(camera: tuple, threads: int):
               threads, *(_ptr(v) for _, v in grads))
         return tuple(g for g, _ in grads)
 
-    return project
+    return _reverse_mode_only(project, "project_ewa")
 
 
 def project_ewa(means, quats, scales, viewmat, fx: float, fy: float, cx: float, cy: float, width: int, height: int,

@@ -6,7 +6,7 @@ import functools
 
 import mlx.core as mx
 
-from . import _call, _f32p, _host, _i64, _int, _output, _ptr, _threads, register
+from . import _call, _f32p, _host, _i64, _int, _output, _ptr, _reverse_mode_only, _threads, register
 
 register({
     "mlx3d_sh_forward": ([_f32p, _i64, _f32p, _i64, _f32p, _f32p, _i64, _int, _int, _f32p], _int),
@@ -42,7 +42,7 @@ def _sh_function(degree: int, threads: int):
               threads, _ptr(v0), _ptr(v1), _ptr(vm))
         return d0, d1, dm, mx.zeros_like(centre)
 
-    return colours
+    return _reverse_mode_only(colours, "sh_colors")
 
 
 def sh_colors(sh: list, means: mx.array, centre: mx.array, degree: int, num_threads: int = 0) -> mx.array:

@@ -12,6 +12,9 @@
  * follow for inputs: 'f' float32, 'u' uint8, 'n' int32, 'D' float64 updated in place; 'o' a float32 and 'l'
  * an int64 output array (nothing follows). OUT: per record, i32 the return value, u32 length and text of
  * mlx3d_last_error(), then per 'o', 'l' and 'D' argument u64 count and its elements. Little-endian throughout.
+ * Also: 'd' a float64 input, 'F' a float32 array updated in place (elements follow; in OUT as 'D'), 'b' a uint8
+ * output array (nothing follows; in OUT as 'o'). A record of mlx3d_adam_moment or mlx3d_adam_param with its
+ * updated array (x, p) as 'F' and no output argument calls it in place (output = that array).
  * The record "mlx3d_knn" builds a tree, queries it and frees it (the API's three calls), with the arguments
  * points, n, leaf size, queries, m, k, output, threads, out_dist, out_index.
  */
@@ -48,9 +51,9 @@ typedef struct {
 /* Bytes per element of an array argument's kind; 0 for a scalar. */
 static size_t element_size(char kind) {
   switch (kind) {
-    case 'f': case 'o': case 'n': return 4;
-    case 'u': return 1;
-    case 'D': case 'l': return 8;
+    case 'f': case 'o': case 'n': case 'F': return 4;
+    case 'u': case 'b': return 1;
+    case 'D': case 'l': case 'd': return 8;
     case 'i': case 'x': return 0;
     default: fail("unknown argument kind");
   }
@@ -73,7 +76,24 @@ typedef int (*knn_free_t)(void*);
 typedef int (*knn_query_t)(const void*, const float*, int64_t, int, const int64_t*, int, int, int64_t*, float*);
 typedef int (*statistics_t)(const uint8_t*, const float*, const int32_t*, int64_t, double, double, double*, double*, double*, int);
 
+typedef int (*raster_forward_t)(const float*, const float*, const float*, const float*, const int32_t*, const int32_t*, int64_t,
+                                int, int64_t, int, int, int, const float*, int, float*, float*, int32_t*, float*);
+typedef int (*raster_backward_t)(const float*, const float*, const float*, const float*, const int32_t*, const int32_t*, int64_t,
+                                 int, int64_t, int, int, int, const int32_t*, const float*, const float*, const float*,
+                                 const float*, int, float*, float*, float*, float*);
+
+typedef int (*project_t)(const float*, const float*, const float*, int64_t, const float*, float, float, float, float, int, int,
+                         float, float, float, int, int, float*, float*, int32_t*, float*, float*);
+typedef int (*project_backward_t)(const float*, const float*, const float*, int64_t, const float*, float, float, float, float, int,
+                                  int, float, float, float, int, const float*, const float*, const float*, const float*, int, float*,
+                                  float*, float*);
+
+typedef int (*bin_tiles_t)(const float*, const float*, const float*, int64_t, int, int, int, const float*, const float*, int, int32_t*,
+                           int32_t**, int64_t*);
+typedef void (*free_t)(void*);
+
 #define I(k) ((int64_t)args[k].count)
+#define N(k) ((const int32_t*)args[k].data)
 #define F(k) ((float*)args[k].data)
 #define X(k) (as_double(args[k].count))
 
@@ -121,9 +141,78 @@ static int call(library_t lib, const char* name, Arg* args, uint32_t nargs) {
                               (double*)args[7].data, (double*)args[8].data, (int)I(9));
   }
   /* ---- rasterizer ---- */
+  if (!strcmp(name, "mlx3d_rasterize_forward")) {  /* 'o' for last: an int32 output, compared as bytes */
+    if (!kinds_are(args, nargs, "ffffnniiiiiifioooo")) fail("mlx3d_rasterize_forward: arguments of the wrong kinds");
+    return ((raster_forward_t)fn)(F(0), F(1), F(2), F(3), N(4), N(5), I(6), (int)I(7), I(8), (int)I(9), (int)I(10), (int)I(11),
+                                  F(12), (int)I(13), F(14), F(15), (int32_t*)args[16].data, F(17));
+  }
+  if (!strcmp(name, "mlx3d_rasterize_backward")) {
+    if (!kinds_are(args, nargs, "ffffnniiiiiinffffioooo")) fail("mlx3d_rasterize_backward: arguments of the wrong kinds");
+    return ((raster_backward_t)fn)(F(0), F(1), F(2), F(3), N(4), N(5), I(6), (int)I(7), I(8), (int)I(9), (int)I(10), (int)I(11),
+                                   N(12), F(13), F(14), F(15), F(16), (int)I(17), F(18), F(19), F(20), F(21));
+  }
   /* ---- projection and tile binning ---- */
+  if (!strcmp(name, "mlx3d_bin_tiles")) {  /* the entries, which the library allocates, copied into the last 'o' (its count) */
+    if (!kinds_are(args, nargs, "fffiiiiffioo")) fail("mlx3d_bin_tiles: arguments of the wrong kinds");
+    int32_t* ids = NULL;
+    int64_t m = 0;
+    const int rc = ((bin_tiles_t)fn)(F(0), F(1), F(2), I(3), (int)I(4), (int)I(5), (int)I(6), F(7), F(8), (int)I(9),
+                                     (int32_t*)args[10].data, &ids, &m);
+    if (rc == 0 && (uint64_t)m != args[11].count) fail("mlx3d_bin_tiles: another count of entries than the calls file expects");
+    if (m) memcpy(args[11].data, ids, (size_t)m * 4);
+    ((free_t)symbol(lib, "mlx3d_free"))(ids);
+    return rc;
+  }
+  if (!strcmp(name, "mlx3d_project_ewa")) {  /* 'x' for the float scalars; 'o' for radii: an int32 output, compared as bytes */
+    if (!kinds_are(args, nargs, "fffifxxxxiixxxiiooooo")) fail("mlx3d_project_ewa: arguments of the wrong kinds");
+    return ((project_t)fn)(F(0), F(1), F(2), I(3), F(4), (float)X(5), (float)X(6), (float)X(7), (float)X(8), (int)I(9), (int)I(10),
+                           (float)X(11), (float)X(12), (float)X(13), (int)I(14), (int)I(15), F(16), F(17), (int32_t*)args[18].data,
+                           F(19), F(20));
+  }
+  if (!strcmp(name, "mlx3d_project_ewa_backward")) {
+    if (!kinds_are(args, nargs, "fffifxxxxiixxxiffffiooo")) fail("mlx3d_project_ewa_backward: arguments of the wrong kinds");
+    return ((project_backward_t)fn)(F(0), F(1), F(2), I(3), F(4), (float)X(5), (float)X(6), (float)X(7), (float)X(8), (int)I(9),
+                                    (int)I(10), (float)X(11), (float)X(12), (float)X(13), (int)I(14), F(15), F(16), F(17), F(18),
+                                    (int)I(19), F(20), F(21), F(22));
+  }
   /* ---- photometric loss ---- */
+  if (!strcmp(name, "mlx3d_photometric_loss")) {  /* weights and scratch: NULL when of count 0; lambda: the double as a float */
+    typedef int (*photometric_loss_t)(const float*, const float*, const float*, int64_t, int64_t, int64_t, float, const float*, int64_t,
+                                      int, float*, float*, float*);
+    if (!kinds_are(args, nargs, "fffiiixfiiooo")) fail("mlx3d_photometric_loss: arguments of the wrong kinds");
+    return ((photometric_loss_t)fn)(F(0), F(1), F(2), I(3), I(4), I(5), (float)X(6), F(7), I(8), (int)I(9), F(10), F(11), F(12));
+  }
+  if (!strcmp(name, "mlx3d_mse")) {  /* weights: NULL when of count 0 */
+    if (!kinds_are(args, nargs, "fffiiiiio")) fail("mlx3d_mse: arguments of the wrong kinds");
+    return ((int (*)(const float*, const float*, const float*, int64_t, int64_t, int64_t, int, int, float*))fn)(
+        F(0), F(1), F(2), I(3), I(4), I(5), (int)I(6), (int)I(7), F(8));
+  }
   /* ---- optimizer and activations ---- */
+  if (!strcmp(name, "mlx3d_adam_moment")) {
+    typedef int (*adam_moment_t)(const float*, const float*, int64_t, double, int, int, float*);
+    if (kinds_are(args, nargs, "ffixiio")) return ((adam_moment_t)fn)(F(0), F(1), I(2), X(3), (int)I(4), (int)I(5), F(6));
+    if (kinds_are(args, nargs, "fFixii")) return ((adam_moment_t)fn)(F(0), F(1), I(2), X(3), (int)I(4), (int)I(5), F(1));
+    fail("mlx3d_adam_moment: arguments of the wrong kinds");
+  }
+  if (!strcmp(name, "mlx3d_adam_param")) {
+    typedef int (*adam_param_t)(const float*, const float*, const float*, int64_t, double, double, double, double, int, float*);
+    if (kinds_are(args, nargs, "fffixxxxio")) return ((adam_param_t)fn)(F(0), F(1), F(2), I(3), X(4), X(5), X(6), X(7), (int)I(8), F(9));
+    if (kinds_are(args, nargs, "Fffixxxxi")) return ((adam_param_t)fn)(F(0), F(1), F(2), I(3), X(4), X(5), X(6), X(7), (int)I(8), F(0));
+    fail("mlx3d_adam_param: arguments of the wrong kinds");
+  }
+  if (!strcmp(name, "mlx3d_all_finite")) {
+    if (!kinds_are(args, nargs, "fiib")) fail("mlx3d_all_finite: arguments of the wrong kinds");
+    return ((int (*)(const float*, int64_t, int, uint8_t*))fn)(F(0), I(1), (int)I(2), (uint8_t*)args[3].data);
+  }
+  if (!strcmp(name, "mlx3d_exp") || !strcmp(name, "mlx3d_sigmoid")) {
+    if (!kinds_are(args, nargs, "fiio")) fail("mlx3d_exp / mlx3d_sigmoid: arguments of the wrong kinds");
+    return ((int (*)(const float*, int64_t, int, float*))fn)(F(0), I(1), (int)I(2), F(3));
+  }
+  if (!strcmp(name, "mlx3d_affine_covariances")) {
+    if (!kinds_are(args, nargs, "dffiioo")) fail("mlx3d_affine_covariances: arguments of the wrong kinds");
+    return ((int (*)(const double*, const float*, const float*, int64_t, int, float*, float*))fn)((const double*)args[0].data, F(1), F(2),
+                                                                                                  I(3), (int)I(4), F(5), F(6));
+  }
   fail("no call of that function is known to the driver");
   return -1;
 }
@@ -158,7 +247,7 @@ int main(int argc, char** argv) {
       if (size && args[k].count) {
         args[k].data = malloc(args[k].count * size);
         if (!args[k].data) fail("out of memory");
-        if (args[k].kind == 'o' || args[k].kind == 'l') memset(args[k].data, 0xff, args[k].count * size);  /* NaN / -1: unwritten shows */
+        if (args[k].kind == 'o' || args[k].kind == 'l' || args[k].kind == 'b') memset(args[k].data, 0xff, args[k].count * size);  /* NaN / -1: unwritten shows */
         else read_exact(in, args[k].data, args[k].count * size);
       }
     }
@@ -169,7 +258,7 @@ int main(int argc, char** argv) {
     write_exact(out, &error_length, 4);
     write_exact(out, error, error_length);
     for (uint32_t k = 0; k < nargs; ++k) {
-      if (args[k].kind == 'o' || args[k].kind == 'l' || args[k].kind == 'D') {
+      if (args[k].kind == 'o' || args[k].kind == 'l' || args[k].kind == 'D' || args[k].kind == 'F' || args[k].kind == 'b') {
         write_exact(out, &args[k].count, 8);
         write_exact(out, args[k].data, args[k].count * element_size(args[k].kind));
       }

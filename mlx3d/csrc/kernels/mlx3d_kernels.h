@@ -150,10 +150,11 @@ MLX3D_API void mlx3d_free(void* block);
  * S = max(sum_p w_p, 1e-12), w = weights (H, W) or NULL (all 1); s the SSIM map of 3DGS: per channel, mu, E[x^2],
  * E[y^2], E[xy] from the zero-padded "same" filter with outer(taps, taps) (taps (ntaps,), ntaps odd, symmetric),
  * C1 = 0.01^2, C2 = 0.03^2. Writes loss (1,) and grad (H, W, C) = dloss/dx; the loss is symmetric, so dloss/dy is
- * the call with x and y swapped. lambda in [0, 1]; H, W, C >= 1. scratch: 8 H W C floats of working memory (their
- * contents of no value before or after), or NULL to have the call allocate it. Per element in float32; the weights'
- * sum, each row's weighted L1 and SSIM sums and their sums over rows (in row order) in float64, so the results are
- * the same for any thread count (mlx3d.training.metrics' photometric_loss, float32 sums there). */
+ * the call with x and y swapped. lambda in [0, 1]; H, W, C >= 1 and H W C < 2^31 (also for mlx3d_mse). scratch:
+ * 8 H W C floats of working memory (their contents of no value before or after), or NULL to have the call allocate
+ * it. Per element in float32; the weights' sum, each row's weighted L1 and SSIM sums and their sums over rows (in
+ * row order) in float64, so the results are the same for any thread count (mlx3d.training.metrics' photometric_loss,
+ * float32 sums there). */
 MLX3D_API int mlx3d_photometric_loss(const float* x, const float* y, const float* weights, int64_t h, int64_t w, int64_t c,
                                      float lambda, const float* taps, int64_t ntaps, int threads, float* scratch, float* loss,
                                      float* grad);
