@@ -11,16 +11,20 @@ exactly the wheels inside. Per platform, for each Python (3.11 and 3.13):
 
 - ``linux-x64``: ``mlx`` and ``mlx-cpu`` (``manylinux_2_35_x86_64``) and our
   compiled wheel ``mlx3d_splat-VERSION-cp3X-cp3X-linux_x86_64.whl`` with the
-  C++ kernels ``mlx3d._core``.
+  C++ kernels ``mlx3d._core`` and the kernel library
+  ``mlx3d/_kernels/libmlx3d_kernels.so``.
 - ``macos-arm64``: ``mlx`` and ``mlx-metal`` (``macosx_14_0_arm64``; there is no
   ``mlx-cpu`` on macOS, ``mlx-metal`` carries ``libmlx.dylib`` and MLX's Metal
-  kernels) and our pure-Python wheel ``mlx3d_splat-VERSION-py3-none-any.whl``:
-  mlx3d's Metal kernels (``mlx3d/render/raster_metal.py``) on the GPU.
+  kernels) and our wheel ``mlx3d_splat-VERSION-py3-none-macosx_11_0_arm64.whl``
+  (pure Python and ``mlx3d/_kernels/libmlx3d_kernels.dylib``): mlx3d's Metal
+  kernels (``mlx3d/render/raster_metal.py``) on the GPU.
 - ``windows-x64``: ``mlx`` and ``mlx-cpu`` (``win_amd64``; ``mlx/core.pyd``
   loads ``mlx.dll`` and ``libopenblas.dll``, which ``mlx-cpu`` puts next to it)
-  and our pure-Python wheel: pure MLX on the CPU.
+  and our wheel ``mlx3d_splat-VERSION-py3-none-win_amd64.whl`` (pure Python and
+  ``mlx3d/_kernels/mlx3d_kernels.dll``): MLX on the CPU.
 - ``linux-arm64``: ``mlx`` and ``mlx-cpu`` (``manylinux_2_35_aarch64``) and our
-  pure-Python wheel: pure MLX on the CPU.
+  wheel ``mlx3d_splat-VERSION-py3-none-manylinux_2_17_aarch64.whl`` (pure
+  Python and ``mlx3d/_kernels/libmlx3d_kernels.so``): MLX on the CPU.
 
 All of them also bundle ``plyfile``, ``pillow`` and ``zstandard``, and the
 ``poses`` extra: ``av`` (PyAV, frames from videos) everywhere, one wheel per
@@ -58,8 +62,21 @@ Steps, each printed as it runs (once per platform):
    ``mlx-cpu``: hence the explicit ``mlx-cpu`` pin for Windows in pyproject.toml.
    And that the markers of every other bundled pin (``pycolmap``'s and
    ``av``'s in ``poses``) pull it on exactly the platforms whose zip bundles it.
-3. This project's wheel ``mlx3d_splat``:
+3. The kernel library, then this project's wheel ``mlx3d_splat``:
 
+   - the kernel library for the platform: ``mlx3d/csrc/kernels/build.py
+     PLATFORM --out DIR`` (the host C++ compiler for linux-x64, zig for the
+     others: without zig the build stops and names ``make cross-tools``) into
+     ``build/extension/kernels-PLATFORM/``, reused while it is newer than every
+     file of ``mlx3d/csrc/kernels`` (``--rebuild`` forces a build). Its header
+     must say the platform's format and machine (ELF x86-64, PE32+ x86-64, ELF
+     aarch64, Mach-O arm64), it must export ``mlx3d_kernels_abi``, and it must
+     keep the promise of its wheel's tag (``manylinux_2_17``: no glibc symbol
+     newer than 2.17; ``macosx_11_0``: macOS 11 or older as its minimum); the
+     macOS one must carry a code signature (ad hoc: Apple silicon runs no
+     unsigned code). It goes into the wheel as ``mlx3d/_kernels/NAME``,
+     ``NAME`` being build.py's ``library_name(PLATFORM)``, where
+     ``mlx3d.kernel_library`` loads it.
    - linux-x64: the compiled wheel (``mlx3d`` and ``mlx3d._core``), built once
      per Python: with the running interpreter when it has the build
      requirements (the project's ``.venv``), otherwise in a build venv
@@ -67,11 +84,23 @@ Steps, each printed as it runs (once per platform):
      pyenv) with ``[build-system].requires`` installed. CMake build
      directories are kept under ``build/extension/`` so rebuilds are
      incremental; a wheel newer than every source file is reused
-     (``--rebuild`` forces a build). Each wheel is then imported next to the
-     bundled MLX in a clean interpreter (``python -I -S``): ``mlx3d._core``
-     must load and accept an ``mx.array``.
+     (``--rebuild`` forces a build). The kernel library is added to it
+     (``RECORD`` updated; a wheel that holds the same bytes already is left
+     alone, and the wheel keeps its time, which says when ``_core`` was built).
+     Each wheel built is then imported next to the bundled MLX in a clean
+     interpreter (``python -I -S``): ``mlx3d._core`` must load and accept an
+     ``mx.array``; and in each wheel built or given a new library,
+     ``mlx3d.kernel_library`` (run by this interpreter, with its MLX and numpy:
+     a build venv has no numpy) must load the library from the wheel's
+     ``mlx3d/_kernels/``. On another machine the compiled wheels must be in
+     ``wheels/`` with their library already.
    - the other platforms: the pure-Python wheel, written by this script with
-     ``zipfile`` (no compiler, any machine, in seconds): the files of
+     ``zipfile`` (no compiler, any machine, in seconds), twice: the generic
+     ``py3-none-any`` one, for ``pip install`` anywhere MLX runs (no kernel
+     library, as a ``pip install .`` leaves it out), and the one the zip
+     carries, the same files plus ``mlx3d/_kernels/NAME``, tagged
+     ``py3-none-PLATFORMTAG`` (``Platform.pure_tag``) with ``Root-Is-Purelib:
+     false``. Each holds the files of
      ``[tool.scikit-build] wheel.packages`` less ``wheel.exclude`` (so no
      ``mlx3d/csrc``) and less caches and compiled modules, plus
      ``mlx3d/render/raster_math.h`` copied from ``mlx3d/csrc`` (the compiled
@@ -83,9 +112,11 @@ Steps, each printed as it runs (once per platform):
      timestamps), and the file is rewritten only when they change. It is
      checked like the compiled one, unpacked alone next to the running
      interpreter's MLX in ``python -I -S`` with ``MLX3D_NO_CORE=1``: ``mlx3d``
-     imports from it, holds no ``_core``, and
+     imports from it, holds no ``_core``, its ``mlx3d/_kernels/`` holds the
+     platform's library alone (the generic wheel: no such folder), and
      ``mlx3d.render.raster_metal.kernel_header()`` returns ``raster_math.h``.
-4. Check that every wheel the manifest lists for the platform exists.
+4. Check that every wheel the manifest lists for the platform exists, and that
+   our wheel(s) hold exactly the platform's kernel library, the one of step 3.
 5. Stage the extension (manifest narrowed to the platform and Pythons, root
    ``__init__.py``, ``addon/`` without this script, the wheels) in a new
    ``build/extension/stage-PLATFORM-*`` (removed afterwards) and run Blender's
@@ -111,25 +142,50 @@ Linux x86-64 (``linux-x64``): MLX's wheels are tagged ``manylinux_2_35_x86_64``
 3.11 (the venv) and Python 3.13 (``python3.13`` on PATH, or ``pyenv install
 3.13``) with development headers, a C++20 compiler and CMake >= 3.24.
 
-The other platforms' zips need no compiler and no machine of that platform;
-``tests/test_packaging.py`` builds and validates all four. Their pure-Python
-``mlx3d`` uses the Metal kernels on Apple GPUs and pure MLX elsewhere.
+The other platforms' zips need no machine of that platform, and no compiler
+but zig (``make cross-tools`` installs the pinned ``ziglang`` into the venv)
+for their kernel library; ``tests/test_packaging.py`` builds and validates all
+four. Their pure-Python ``mlx3d`` uses the Metal kernels on Apple GPUs and pure
+MLX elsewhere, with the kernel library's functions where it has them.
+
+The kernel library and the wheel tags. The library (``mlx3d/csrc/kernels``, a
+C ABI) links neither Python nor MLX, so one build per platform serves every
+Python: the compiled linux-x64 wheels, platform-tagged already, carry it beside
+``_core``; the pure wheel the other zips carry would be platform-independent
+but for it, and a wheel holding a native library must not claim ``any``, so
+that one is ``py3-none-PLATFORMTAG`` (Python 3, no ABI of Python's, one
+platform, as MLX's own ``mlx-cpu`` and ``mlx-metal`` wheels), with
+``Root-Is-Purelib: false`` (it installs into platlib), and the manifest's
+``wheels`` lists the three names. The tags say what the builds are made for
+(build.py's zig targets): ``win_amd64``, ``manylinux_2_17_aarch64`` (glibc
+2.17, libc, libpthread and libdl alone, the C++ runtime inside) and
+``macosx_11_0_arm64``. The ordinary builds, ``pip install .`` and editable
+installs, keep leaving ``mlx3d/_kernels/`` out (``wheel.exclude`` in
+pyproject.toml, decided here): CMakeLists.txt does not build the library, so
+that folder holds whatever ``make kernels`` last built in this checkout, maybe
+from older sources, and a wheel must not depend on such leftovers. An editable
+install reads the folder in place anyway; elsewhere ``MLX3D_KERNELS`` names a
+library. Only the extension's wheels, whose library this script builds from the
+sources and checks, carry one.
 """
 
 from __future__ import annotations
 
 import argparse
 import base64
+import csv
 import dataclasses
 import email.parser
 import fnmatch
 import hashlib
 import importlib.metadata
 import importlib.util
+import io
 import os
 import platform as _platform
 import re
 import shutil
+import struct
 import subprocess
 import sys
 import tempfile
@@ -214,6 +270,16 @@ SOURCE_INPUTS = ("pyproject.toml", "CMakeLists.txt", "mlx3d")
 #: next to ``mlx3d/render/raster_metal.py``.
 PURE_WHEEL_EXTRA_FILES = (("mlx3d/csrc/raster_math.h", "mlx3d/render/raster_math.h"),)
 
+#: The kernel library (a C ABI; links neither Python nor MLX): its sources, and the
+#: script that builds it for a platform (``build.py PLATFORM --out DIR``) and names
+#: its file (``library_name(PLATFORM)``).
+KERNEL_SOURCES = ROOT / "mlx3d" / "csrc" / "kernels"
+KERNEL_BUILD_SCRIPT = KERNEL_SOURCES / "build.py"
+#: The folder of our wheels it goes into: ``mlx3d.kernel_library`` loads ``mlx3d/_kernels/NAME``.
+KERNEL_DIR_IN_WHEEL = "mlx3d/_kernels"
+#: The function every build of it must export (its ABI version; the loader calls it first).
+KERNEL_ABI_SYMBOL = "mlx3d_kernels_abi"
+
 #: Never put into the pure wheel: caches and compiled modules of a checkout.
 _NOT_PACKAGED_SUFFIXES = frozenset({".pyc", ".pyo", ".so", ".pyd", ".dylib", ".dll"})
 
@@ -236,7 +302,9 @@ class Platform:
     mlx_library: str  # the wheel that carries libmlx
     host: tuple[str, str]  # (platform.system(), platform.machine()) of a machine of this platform
     markers: tuple[tuple[str, str], ...]  # its PEP 508 environment markers (Requires-Dist checks)
+    kernel_binary: tuple[str, str]  # (format, machine) of its kernel library, as binary_kind reads them
     own_tag: str | None = None  # platform tag of our compiled wheel; None: the pure-Python wheel
+    pure_tag: str | None = None  # platform tag of the pure wheel that carries its kernel library (py3-none-TAG)
 
     @property
     def compiled(self) -> bool:
@@ -251,6 +319,7 @@ PLATFORMS = {
         host=("Linux", "x86_64"),
         markers=(("sys_platform", "linux"), ("platform_system", "Linux"), ("platform_machine", "x86_64"),
                  ("os_name", "posix")),
+        kernel_binary=("ELF", "x86-64"),
         own_tag="linux_x86_64",
     ),
     "macos-arm64": Platform(
@@ -260,6 +329,8 @@ PLATFORMS = {
         host=("Darwin", "arm64"),
         markers=(("sys_platform", "darwin"), ("platform_system", "Darwin"), ("platform_machine", "arm64"),
                  ("os_name", "posix")),
+        kernel_binary=("Mach-O", "arm64"),
+        pure_tag="macosx_11_0_arm64",
     ),
     "windows-x64": Platform(
         name="windows-x64",
@@ -268,6 +339,8 @@ PLATFORMS = {
         host=("Windows", "x86_64"),
         markers=(("sys_platform", "win32"), ("platform_system", "Windows"), ("platform_machine", "AMD64"),
                  ("os_name", "nt")),
+        kernel_binary=("PE32+", "x86-64"),
+        pure_tag="win_amd64",
     ),
     "linux-arm64": Platform(
         name="linux-arm64",
@@ -276,6 +349,8 @@ PLATFORMS = {
         host=("Linux", "arm64"),
         markers=(("sys_platform", "linux"), ("platform_system", "Linux"), ("platform_machine", "aarch64"),
                  ("os_name", "posix")),
+        kernel_binary=("ELF", "aarch64"),
+        pure_tag="manylinux_2_17_aarch64",
     ),
 }
 
@@ -424,9 +499,14 @@ def read_pins(pyproject: Path = PYPROJECT) -> Pins:
     )
 
 
-def pure_wheel_name(pins: Pins) -> str:
-    """File name of our pure-Python wheel (every platform but linux-x64)."""
-    return f"{pins.own_name}-{pins.own_version}-py3-none-any.whl"
+def pure_wheel_name(pins: Pins, plat: Platform | None = None) -> str:
+    """File name of our pure-Python wheel: the generic one (``py3-none-any``, no kernel library), or with
+    ``plat`` the one that platform's zip carries, with its kernel library (``py3-none-TAG``)."""
+    if plat is None:
+        return f"{pins.own_name}-{pins.own_version}-py3-none-any.whl"
+    if plat.pure_tag is None:
+        raise PackagingError(f"{plat.name} carries the compiled wheel, not a pure one")
+    return f"{pins.own_name}-{pins.own_version}-py3-none-{plat.pure_tag}.whl"
 
 
 def compiled_wheel_name(pins: Pins, plat: Platform, python: tuple[int, int]) -> str:
@@ -445,7 +525,7 @@ def expected_wheels(pins: Pins, platforms, pythons) -> list[Wheel]:
     for plat_name in platforms:
         plat = PLATFORMS[plat_name]
         if not plat.compiled:
-            add(Wheel(pure_wheel_name(pins), None, None, None))
+            add(Wheel(pure_wheel_name(pins, plat), None, None, plat.name))
         for python in pythons:
             tag = _py_tag(python)
             add(Wheel(f"mlx-{mlx}-{tag}-{tag}-{plat.mlx_tag}.whl", f"mlx=={mlx}", python, plat.name, plat.mlx_tag))
@@ -688,6 +768,215 @@ def check_bundled_markers(pins: Pins, plat: Platform, pythons) -> None:
         log(f"  markers on {plat.name}: {', '.join(pulled_here)}")
 
 
+# ------------------------------------------------------------- the kernel library
+_kernel_build_module = None
+
+
+def kernel_build():
+    """``mlx3d/csrc/kernels/build.py`` as a module (``library_name``, ``TARGETS``, ``zig``)."""
+    global _kernel_build_module
+    if _kernel_build_module is None:
+        spec = importlib.util.spec_from_file_location("mlx3d_kernels_build", KERNEL_BUILD_SCRIPT)
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        _kernel_build_module = module
+    return _kernel_build_module
+
+
+def kernel_wheel_path(platform_name: str) -> str:
+    """Where the platform's kernel library lies in our wheel: ``mlx3d/_kernels/`` + build.py's name for it."""
+    return f"{KERNEL_DIR_IN_WHEEL}/{kernel_build().library_name(platform_name)}"
+
+
+def binary_kind(data: bytes) -> tuple[str, str]:
+    """(format, machine) of a shared library, from its header: ``("ELF", "x86-64")``, ``("PE32+", "x86-64")``,
+    ``("ELF", "aarch64")``, ``("Mach-O", "arm64")``, ...; ``("unknown", "")`` when none of these formats."""
+    if data[:4] == b"\x7fELF" and len(data) >= 20:
+        bits = {1: "ELF32", 2: "ELF"}.get(data[4], "ELF?")
+        machine = struct.unpack_from("<H" if data[5] == 1 else ">H", data, 18)[0]
+        return bits, {62: "x86-64", 183: "aarch64", 3: "x86", 40: "arm"}.get(machine, f"machine {machine}")
+    if data[:2] == b"MZ" and len(data) >= 64:
+        pe = struct.unpack_from("<I", data, 0x3C)[0]
+        if data[pe:pe + 4] == b"PE\0\0" and len(data) >= pe + 26:
+            machine, = struct.unpack_from("<H", data, pe + 4)
+            magic, = struct.unpack_from("<H", data, pe + 24)  # the optional header's
+            return ({0x20B: "PE32+", 0x10B: "PE32"}.get(magic, "PE?"),
+                    {0x8664: "x86-64", 0xAA64: "arm64", 0x14C: "x86"}.get(machine, f"machine {machine:#x}"))
+    if data[:4] == b"\xcf\xfa\xed\xfe" and len(data) >= 8:  # MH_MAGIC_64, little-endian
+        cputype, = struct.unpack_from("<I", data, 4)
+        return "Mach-O", {0x0100000C: "arm64", 0x01000007: "x86-64"}.get(cputype, f"cputype {cputype:#x}")
+    return "unknown", ""
+
+
+def _glibc_needed(data: bytes) -> tuple[int, int] | None:
+    """The newest ``GLIBC_X.Y`` symbol version an ELF library names (None: none)."""
+    versions = {(int(a), int(b)) for a, b in re.findall(rb"GLIBC_(\d+)\.(\d+)", data)}
+    return max(versions) if versions else None
+
+
+def _macho_commands(data: bytes) -> list[tuple[int, int]]:
+    """(command, offset) of each load command of a 64-bit Mach-O file."""
+    ncmds, = struct.unpack_from("<I", data, 16)
+    commands, offset = [], 32  # after mach_header_64
+    for _ in range(ncmds):
+        cmd, size = struct.unpack_from("<II", data, offset)
+        commands.append((cmd, offset))
+        if size <= 0:
+            break
+        offset += size
+    return commands
+
+
+def _macos_minimum(data: bytes) -> tuple[int, int] | None:
+    """The minimum macOS of a 64-bit Mach-O file (``LC_BUILD_VERSION`` or ``LC_VERSION_MIN_MACOSX``)."""
+    for cmd, offset in _macho_commands(data):
+        if cmd in (0x32, 0x24):  # LC_BUILD_VERSION (platform, minos, ...), LC_VERSION_MIN_MACOSX (version, ...)
+            version, = struct.unpack_from("<I", data, offset + (12 if cmd == 0x32 else 8))
+            return version >> 16, (version >> 8) & 0xFF
+    return None
+
+
+def check_kernel_library(data: bytes, plat: Platform, what: str) -> str:
+    """Stops unless ``data`` is ``plat``'s kernel library: its format and machine, the ABI function exported, and
+    what its wheel's tag promises (glibc and macOS versions); returns a description of it."""
+    kind = binary_kind(data)
+    if kind != plat.kernel_binary:
+        raise PackagingError(f"{what} is {' '.join(kind)}, not the {plat.name} kernel library "
+                             f"({' '.join(plat.kernel_binary)})")
+    if KERNEL_ABI_SYMBOL.encode() + b"\0" not in data:
+        raise PackagingError(f"{what} does not export {KERNEL_ABI_SYMBOL}: not a build of mlx3d/csrc/kernels")
+    described = f"{' '.join(kind)}, {len(data) / 1e3:.0f} kB"
+    tag = plat.pure_tag or ""
+    if match := re.fullmatch(r"manylinux_(\d+)_(\d+)_\w+", tag):
+        promised, needed = (int(match.group(1)), int(match.group(2))), _glibc_needed(data)
+        if needed is None or needed > promised:
+            raise PackagingError(f"{what} needs glibc {'.'.join(map(str, needed or ()))}, newer than its wheel's tag "
+                                 f"{tag} allows: build it for glibc {'.'.join(map(str, promised))} (build.py's target)")
+        described += f", glibc {needed[0]}.{needed[1]}"
+    elif match := re.fullmatch(r"macosx_(\d+)_(\d+)_\w+", tag):
+        promised, needed = (int(match.group(1)), int(match.group(2))), _macos_minimum(data)
+        if needed is None or needed > promised:
+            raise PackagingError(f"{what} needs macOS {'.'.join(map(str, needed or ('?',)))}, newer than its "
+                                 f"wheel's tag {tag} allows: build it for macOS {'.'.join(map(str, promised))} "
+                                 "(build.py's target)")
+        described += f", macOS {needed[0]}.{needed[1]}"
+    if kind == ("Mach-O", "arm64"):  # macOS on Apple silicon loads no arm64 code without a signature (ad hoc will do)
+        if not any(cmd == 0x1D for cmd, _ in _macho_commands(data)):  # LC_CODE_SIGNATURE
+            raise PackagingError(f"{what} has no code signature (LC_CODE_SIGNATURE): macOS would refuse to load it")
+        described += ", signed"
+    return described
+
+
+def _newest_kernel_source_mtime() -> float:
+    return max((p.stat().st_mtime for p in KERNEL_SOURCES.rglob("*")
+                if p.is_file() and "__pycache__" not in p.parts), default=0.0)
+
+
+def build_kernel_library(platform_name: str, *, rebuild: bool = False) -> Path:
+    """The platform's kernel library, built by build.py into ``build/extension/kernels-PLATFORM/`` (reused while
+    newer than every file of mlx3d/csrc/kernels) and checked (``check_kernel_library``)."""
+    build_script = kernel_build()
+    plat = PLATFORMS[platform_name]
+    out = WORK_DIR / f"kernels-{platform_name}"
+    library = out / build_script.library_name(platform_name)
+    if not rebuild and library.is_file() and library.stat().st_mtime >= _newest_kernel_source_mtime():
+        log(f"  have {library.relative_to(ROOT)} (newer than {KERNEL_SOURCES.relative_to(ROOT)})")
+    else:
+        if build_script.TARGETS.get(platform_name) is not None:
+            try:
+                build_script.zig()
+            except SystemExit:
+                raise PackagingError(
+                    f"the {platform_name} kernel library is cross-compiled with zig, which is not installed (no "
+                    f"ziglang in {sys.executable}, no zig on PATH): run `make cross-tools`, which installs the pinned "
+                    "ziglang into the venv. The zip is not built without its library"
+                ) from None
+        WORK_DIR.mkdir(parents=True, exist_ok=True)
+        start = time.perf_counter()
+        with tempfile.TemporaryDirectory(dir=WORK_DIR, prefix=f".kernels-{platform_name}-") as tmp:
+            _run([sys.executable, KERNEL_BUILD_SCRIPT, platform_name, "--out", tmp],
+                 what=f"building the {platform_name} kernel library", capture=True)
+            built = Path(tmp) / library.name
+            if not built.is_file():
+                raise PackagingError(f"{KERNEL_BUILD_SCRIPT.relative_to(ROOT)} {platform_name} wrote no {library.name}")
+            out.mkdir(parents=True, exist_ok=True)
+            os.replace(built, library)
+        log(f"  built {library.relative_to(ROOT)} ({time.perf_counter() - start:.1f} s)")
+    log(f"  kernel library: {check_kernel_library(library.read_bytes(), plat, library.name)}")
+    return library
+
+
+def _record_line(name: str, data: bytes) -> list[str]:
+    digest = base64.urlsafe_b64encode(hashlib.sha256(data).digest()).rstrip(b"=").decode()
+    return [name, f"sha256={digest}", str(len(data))]
+
+
+def holds_kernel_library(wheel: Path, platform_name: str, library: Path) -> bool:
+    """True when the wheel's ``mlx3d/_kernels/`` holds this library alone (the same bytes)."""
+    name = kernel_wheel_path(platform_name)
+    with zipfile.ZipFile(wheel) as zf:
+        ours = [n for n in zf.namelist() if n.startswith(f"{KERNEL_DIR_IN_WHEEL}/")]
+        return ours == [name] and zf.read(name) == library.read_bytes()
+
+
+def add_kernel_library(wheel: Path, platform_name: str, library: Path) -> bool:
+    """Puts the kernel library into a built wheel at ``mlx3d/_kernels/NAME`` (any other file of that folder
+    out), with its ``RECORD`` line; True when the wheel changed, False when it held the same bytes already.
+
+    The wheel keeps its modification time: it says when the wheel was built from the sources."""
+    if holds_kernel_library(wheel, platform_name, library):
+        return False
+    name, data = kernel_wheel_path(platform_name), library.read_bytes()
+    with zipfile.ZipFile(wheel) as zf:
+        records = [n for n in zf.namelist() if re.fullmatch(r"[^/]+\.dist-info/RECORD", n)]
+        if len(records) != 1:
+            raise PackagingError(f"{wheel.name}: expected one *.dist-info/RECORD, found {records}")
+        record = records[0]
+        rows = [row for row in csv.reader(io.StringIO(zf.read(record).decode()))
+                if row and row[0] != record and not row[0].startswith(f"{KERNEL_DIR_IN_WHEEL}/")]
+        entries = [(info, zf.read(info)) for info in zf.infolist()
+                   if info.filename != record and not info.filename.startswith(f"{KERNEL_DIR_IN_WHEEL}/")]
+    text = io.StringIO()
+    csv.writer(text, lineterminator="\n").writerows([*rows, _record_line(name, data), [record, "", ""]])
+    stat = wheel.stat()
+    tmp = wheel.with_name(f".{wheel.name}.tmp")
+    try:
+        with zipfile.ZipFile(tmp, "w") as out:
+            for info, content in entries:  # the package's files, then the library, then .dist-info
+                if ".dist-info/" not in info.filename:
+                    out.writestr(info, content)
+            _zip_entry(out, name, data, 0o755)
+            for info, content in entries:
+                if ".dist-info/" in info.filename:
+                    out.writestr(info, content)
+            out.writestr(zipfile.ZipInfo(record, date_time=(1980, 1, 1, 0, 0, 0)), text.getvalue(),
+                         compress_type=zipfile.ZIP_DEFLATED)
+        os.replace(tmp, wheel)
+    finally:
+        tmp.unlink(missing_ok=True)
+    os.utime(wheel, ns=(stat.st_atime_ns, stat.st_mtime_ns))
+    return True
+
+
+def check_wheel_kernel_library(wheel: Path, plat: Platform, library: Path | None) -> None:
+    """Our wheel for ``plat`` holds its kernel library alone in ``mlx3d/_kernels/`` (the bytes of ``library``
+    when given), with the right ``RECORD`` line."""
+    name = kernel_wheel_path(plat.name)
+    with zipfile.ZipFile(wheel) as zf:
+        ours = [n for n in zf.namelist() if n.startswith(f"{KERNEL_DIR_IN_WHEEL}/")]
+        if ours != [name]:
+            hint = "" if ours else f" (build it with `make extension` on a {plat.name} machine)"
+            raise PackagingError(f"{wheel.name} holds {ours or 'no kernel library'}, not {name}{hint}")
+        data = zf.read(name)
+        record = next(n for n in zf.namelist() if re.fullmatch(r"[^/]+\.dist-info/RECORD", n))
+        lines = zf.read(record).decode().splitlines()
+    if library is not None and data != library.read_bytes():
+        raise PackagingError(f"{wheel.name}: its {name} is not {library.relative_to(ROOT)}")
+    if ",".join(_record_line(name, data)) not in lines:
+        raise PackagingError(f"{wheel.name}: its RECORD has no line for {name} with its hash and size")
+    check_kernel_library(data, plat, f"{wheel.name}'s {name}")
+
+
 # ------------------------------------------------------------------ our own wheel
 def _run(cmd, *, what: str, env=None, cwd=None, capture: bool = False) -> subprocess.CompletedProcess:
     try:
@@ -780,19 +1069,32 @@ def _newest_source_mtime() -> float:
 
 
 def build_own_wheel(pins: Pins, plat: Platform, python: tuple[int, int], *, rebuild: bool,
-                    reuse: bool = False) -> Path:
-    """Our compiled wheel (with ``mlx3d._core``) for this machine's platform and this Python.
+                    reuse: bool = False, library: Path) -> Path:
+    """Our compiled wheel (with ``mlx3d._core`` and the kernel library ``library``) for this machine's platform
+    and this Python.
 
-    One in ``wheels/`` is reused when newer than the sources, or with ``reuse`` whatever its age.
+    One in ``wheels/`` is reused when newer than the sources, or with ``reuse`` whatever its age; the kernel
+    library is put into it when it does not hold those bytes (and checked to load from it).
     """
     filename = compiled_wheel_name(pins, plat, python)
     target = WHEELS_DIR / filename
     if not rebuild and _valid_zip(target):
-        if target.stat().st_mtime >= _newest_source_mtime():
-            log(f"  have {filename} (newer than the sources)")
-            return target
-        if reuse:
-            log(f"  have {filename} (older than the sources, reused as asked)")
+        fresh = target.stat().st_mtime >= _newest_source_mtime()
+        if fresh or reuse:
+            state = "newer than the sources" if fresh else "older than the sources, reused as asked"
+            if holds_kernel_library(target, plat.name, library):
+                log(f"  have {filename} ({state}, with this kernel library)")
+                return target
+            with tempfile.TemporaryDirectory(dir=WHEELS_DIR, prefix=".kernels-") as tmp:
+                candidate = Path(tmp) / filename
+                shutil.copy2(target, candidate)  # its time too
+                add_kernel_library(candidate, plat.name, library)
+                with tempfile.TemporaryDirectory(prefix="mlx3d-wheel-check-") as unpacked:
+                    with zipfile.ZipFile(candidate) as zf:
+                        zf.extractall(unpacked)
+                    checked = _check_kernels_load(candidate, unpacked)  # _core is as it was
+                os.replace(candidate, target)
+            log(f"  have {filename} ({state}); added {kernel_wheel_path(plat.name)}: {checked}")
             return target
     exe = build_interpreter(pins, python)
     out = WORK_DIR / f"out-{_py_tag(python)}"
@@ -807,6 +1109,7 @@ def build_own_wheel(pins: Pins, plat: Platform, python: tuple[int, int], *, rebu
     built = sorted(out.glob("*.whl"))
     if [p.name for p in built] != [filename]:
         raise PackagingError(f"building the {_py_tag(python)} wheel gave {[p.name for p in built]}, not {filename}")
+    add_kernel_library(built[0], plat.name, library)
     check_own_wheel(built[0], exe)
     WHEELS_DIR.mkdir(exist_ok=True)
     os.replace(built[0], target)
@@ -835,9 +1138,25 @@ if scale is not None:
 print("ok", core.__file__)
 """
 
+#: The kernel library from an unpacked wheel, through ``mlx3d.kernel_library`` (pure Python: any Python with
+#: MLX and numpy runs it, whatever the wheel's Python).
+_KERNEL_CHECK = r"""
+import os, sys
+wheel_dir, site_dir = sys.argv[1], sys.argv[2]
+sys.path.insert(0, wheel_dir)
+sys.path.append(site_dir)
+import mlx3d.kernel_library as kernels
+assert kernels.__file__.startswith(wheel_dir), kernels.__file__
+assert kernels.available(), kernels.failure()
+assert str(kernels.library_path()).startswith(os.path.realpath(wheel_dir)), kernels.library_path()
+print("ok", kernels.library_path(), kernels.build_info())
+"""
+
 
 def check_own_wheel(wheel: Path, exe: str) -> None:
-    """Import ``mlx3d._core`` from the wheel next to the build interpreter's MLX, in ``python -I -S``."""
+    """Import ``mlx3d._core`` from the wheel next to the build interpreter's MLX, in ``python -I -S``; and load
+    its kernel library through ``mlx3d.kernel_library`` with the running interpreter's MLX and numpy (the build
+    interpreter may have no numpy)."""
     site_dir = _run([exe, "-c", "import sysconfig; print(sysconfig.get_paths()['platlib'])"],
                     what="locating site-packages", capture=True).stdout.strip()
     with tempfile.TemporaryDirectory(prefix="mlx3d-wheel-check-") as tmp:
@@ -845,6 +1164,8 @@ def check_own_wheel(wheel: Path, exe: str) -> None:
             zf.extractall(tmp)
         result = subprocess.run([exe, "-I", "-S", "-c", _CHECK, tmp, site_dir], cwd=tmp,
                                 capture_output=True, text=True)
+        if result.returncode == 0:
+            kernels = _check_kernels_load(wheel, tmp)
     if result.returncode == 3:
         raise PackagingError(
             f"{wheel.name}: mlx3d._core ({Path(result.stdout.strip()).name}) loads but rejects mlx.core's "
@@ -855,7 +1176,22 @@ def check_own_wheel(wheel: Path, exe: str) -> None:
     if result.returncode != 0:
         raise PackagingError(f"{wheel.name}: importing mlx3d._core from the wheel failed:\n"
                              f"{(result.stdout + result.stderr).strip()}")
-    log(f"  checked {wheel.name}: mlx3d._core loads with MLX and takes mx.array")
+    log(f"  checked {wheel.name}: mlx3d._core loads with MLX and takes mx.array; {kernels}")
+
+
+def _check_kernels_load(wheel: Path, unpacked: str) -> str:
+    """``mlx3d.kernel_library`` of the unpacked wheel loads the wheel's library (``_KERNEL_CHECK``)."""
+    if importlib.util.find_spec("mlx") is None or importlib.util.find_spec("numpy") is None:
+        return f"(no mlx or numpy in {sys.executable}: the kernel library's load check is skipped)"
+    import sysconfig
+
+    env = {k: v for k, v in os.environ.items() if k != "MLX3D_KERNELS"}  # the wheel's library, not another
+    result = subprocess.run([sys.executable, "-I", "-S", "-c", _KERNEL_CHECK, unpacked,
+                             sysconfig.get_paths()["platlib"]], cwd=unpacked, env=env, capture_output=True, text=True)
+    if result.returncode != 0:
+        raise PackagingError(f"{wheel.name}: mlx3d.kernel_library does not load the wheel's kernel library:\n"
+                             f"{(result.stdout + result.stderr).strip()}")
+    return "mlx3d.kernel_library loads the wheel's kernel library"
 
 
 # ------------------------------------------------------------ our pure wheel
@@ -930,51 +1266,58 @@ def pure_wheel_files() -> dict[str, Path]:
     return dict(sorted(files.items()))
 
 
-def _zip_entry(zf: zipfile.ZipFile, name: str, data: bytes) -> str:
+def _zip_entry(zf: zipfile.ZipFile, name: str, data: bytes, mode: int = 0o644) -> str:
     """Writes one file with a fixed timestamp; returns its RECORD line."""
     info = zipfile.ZipInfo(name, date_time=(1980, 1, 1, 0, 0, 0))
-    info.external_attr = 0o644 << 16
+    info.external_attr = mode << 16
     info.compress_type = zipfile.ZIP_DEFLATED
     zf.writestr(info, data)
-    digest = base64.urlsafe_b64encode(hashlib.sha256(data).digest()).rstrip(b"=").decode()
-    return f"{name},sha256={digest},{len(data)}"
+    return ",".join(_record_line(name, data))
 
 
-def write_pure_wheel(pins: Pins, path: Path) -> None:
-    """Writes our ``py3-none-any`` wheel (no ``_core``, no compiler) to ``path``."""
+def write_pure_wheel(pins: Pins, path: Path, plat: Platform | None = None, library: Path | None = None) -> None:
+    """Writes our pure-Python wheel (no ``_core``, no compiler) to ``path``: ``py3-none-any``, or with ``plat``
+    and ``library`` that platform's, ``py3-none-TAG`` with the kernel library in ``mlx3d/_kernels/``."""
+    if (plat is None) != (library is None):
+        raise PackagingError("write_pure_wheel: a platform's wheel needs its kernel library, the generic one none")
     project = tomllib.loads(PYPROJECT.read_text())["project"]
     dist_info = f"{pins.own_name}-{pins.own_version}.dist-info"
+    tag, purelib = ("py3-none-any", "true") if plat is None else (f"py3-none-{plat.pure_tag}", "false")
     meta = {
         "METADATA": _pure_metadata(project),
-        "WHEEL": "Wheel-Version: 1.0\nGenerator: mlx3d addon/package.py\nRoot-Is-Purelib: true\nTag: py3-none-any\n",
+        "WHEEL": f"Wheel-Version: 1.0\nGenerator: mlx3d addon/package.py\nRoot-Is-Purelib: {purelib}\nTag: {tag}\n",
     }
     if (entry_points := _pure_entry_points(project)) is not None:
         meta["entry_points.txt"] = entry_points
     with zipfile.ZipFile(path, "w") as zf:
         record = [_zip_entry(zf, name, source.read_bytes()) for name, source in pure_wheel_files().items()]
+        if plat is not None:
+            record.append(_zip_entry(zf, kernel_wheel_path(plat.name), library.read_bytes(), 0o755))
         record += [_zip_entry(zf, f"{dist_info}/{name}", text.encode()) for name, text in meta.items()]
         record.append(f"{dist_info}/RECORD,,")
         zf.writestr(zipfile.ZipInfo(f"{dist_info}/RECORD", date_time=(1980, 1, 1, 0, 0, 0)),
                     "\n".join(record) + "\n", compress_type=zipfile.ZIP_DEFLATED)
 
 
-def build_pure_wheel(pins: Pins) -> Path:
-    """Our pure-Python wheel in ``wheels/``, rewritten only when its bytes change; checked once per process."""
-    target = WHEELS_DIR / pure_wheel_name(pins)
+def build_pure_wheel(pins: Pins, plat: Platform | None = None, library: Path | None = None) -> Path:
+    """Our pure-Python wheel in ``wheels/`` (the generic one, or with ``plat`` and its kernel library
+    ``library`` that platform's), rewritten only when its bytes change; checked once per process."""
+    target = WHEELS_DIR / pure_wheel_name(pins, plat)
+    library_name = kernel_wheel_path(plat.name).rsplit("/", 1)[1] if plat is not None else ""
     WHEELS_DIR.mkdir(exist_ok=True)
     start = time.perf_counter()
     with tempfile.TemporaryDirectory(dir=WHEELS_DIR, prefix=".pure-") as tmp:
         built = Path(tmp) / target.name
-        write_pure_wheel(pins, built)
+        write_pure_wheel(pins, built, plat, library)
         if _valid_zip(target) and target.read_bytes() == built.read_bytes():
             log(f"  have {target.name} (the same bytes as built from the sources)")
         else:
-            check_pure_wheel(built)
+            check_pure_wheel(built, library_name)
             os.replace(built, target)
             _checked_pure_wheels.add(target)
             log(f"  built {target.name} ({_mb(target)}, {time.perf_counter() - start:.1f} s)")
     if target not in _checked_pure_wheels:
-        check_pure_wheel(target)
+        check_pure_wheel(target, library_name)
     return target
 
 
@@ -982,12 +1325,15 @@ _checked_pure_wheels: set[Path] = set()
 
 _PURE_CHECK = r"""
 import importlib.util, os, sys
-wheel_dir, site_dir, header_path = sys.argv[1:4]
+wheel_dir, site_dir, header_path, library = sys.argv[1:5]
 sys.path.insert(0, wheel_dir)
 sys.path.append(site_dir)
 import mlx3d
 assert mlx3d.__file__.startswith(wheel_dir), mlx3d.__file__
 assert importlib.util.find_spec("mlx3d._core") is None, "the pure wheel holds mlx3d._core"
+kernels = os.path.join(os.path.dirname(mlx3d.__file__), "_kernels")
+found = sorted(os.listdir(kernels)) if os.path.isdir(kernels) else []
+assert found == ([library] if library else []), f"mlx3d/_kernels/ holds {found}, not {library or 'nothing'}"
 from mlx3d.render import raster_metal
 assert raster_metal.__file__.startswith(wheel_dir), raster_metal.__file__
 with open(header_path, encoding="utf-8") as f:
@@ -996,8 +1342,9 @@ print("ok", os.path.join(os.path.dirname(raster_metal.__file__), "raster_math.h"
 """
 
 
-def check_pure_wheel(wheel: Path) -> None:
-    """Imports ``mlx3d`` from the pure wheel alone (next to the running interpreter's MLX) in ``python -I -S``."""
+def check_pure_wheel(wheel: Path, library: str = "") -> None:
+    """Imports ``mlx3d`` from the pure wheel alone (next to the running interpreter's MLX) in ``python -I -S``;
+    its ``mlx3d/_kernels/`` holds the file ``library`` alone (none: no such folder)."""
     if importlib.util.find_spec("mlx") is None:
         log(f"  (no mlx in {sys.executable}: the import check of {wheel.name} is skipped)")
         return
@@ -1008,13 +1355,14 @@ def check_pure_wheel(wheel: Path) -> None:
     with tempfile.TemporaryDirectory(prefix="mlx3d-wheel-check-") as tmp:
         with zipfile.ZipFile(wheel) as zf:
             zf.extractall(tmp)
-        result = subprocess.run([sys.executable, "-I", "-S", "-c", _PURE_CHECK, tmp, site_dir, header], cwd=tmp,
-                                env={**os.environ, "MLX3D_NO_CORE": "1"}, capture_output=True, text=True)
+        result = subprocess.run([sys.executable, "-I", "-S", "-c", _PURE_CHECK, tmp, site_dir, header, library],
+                                cwd=tmp, env={**os.environ, "MLX3D_NO_CORE": "1"}, capture_output=True, text=True)
     if result.returncode != 0:
         raise PackagingError(f"{wheel.name}: importing mlx3d from the pure wheel failed:\n"
                              f"{(result.stdout + result.stderr).strip()}")
     _checked_pure_wheels.add(wheel)
-    log(f"  checked {wheel.name}: mlx3d imports without _core, kernel_header() reads raster_math.h")
+    log(f"  checked {wheel.name}: mlx3d imports without _core, kernel_header() reads raster_math.h, "
+        + (f"mlx3d/_kernels/ holds {library} alone" if library else "no mlx3d/_kernels/"))
 
 
 # --------------------------------------------------------------------------- build
@@ -1099,21 +1447,29 @@ def build(platform_name: str | None = None, pythons=DEFAULT_PYTHONS, out_dir: Pa
     check_mlx_requirements(pins, plat, pythons)
     check_bundled_markers(pins, plat, pythons)
 
-    log("3/6 mlx3d_splat wheels")
+    log("3/6 the kernel library and the mlx3d_splat wheels")
+    library = None
     if not plat.compiled:
-        build_pure_wheel(pins)
+        library = build_kernel_library(platform_name, rebuild=rebuild)
+        build_pure_wheel(pins)  # the generic one, for pip (no kernel library): not in the zip
+        build_pure_wheel(pins, plat, library)
     elif platform_name == host:
+        library = build_kernel_library(platform_name, rebuild=rebuild)
         for python in pythons:
-            build_own_wheel(pins, plat, python, rebuild=rebuild, reuse=reuse_compiled)
+            build_own_wheel(pins, plat, python, rebuild=rebuild, reuse=reuse_compiled, library=library)
     else:
-        log(f"  this machine is not {platform_name}: using the compiled mlx3d_splat wheels already in wheels/")
+        log(f"  this machine is not {platform_name}: using the compiled mlx3d_splat wheels already in wheels/, "
+            "with the kernel library they hold")
 
     log("4/6 checking the wheels the manifest lists")
     missing = [w.filename for w in wheels if not _valid_zip(WHEELS_DIR / w.filename)]
     if missing:
         hint = "" if platform_name == host else f" (build them with `make extension` on a {platform_name} machine)"
         raise PackagingError(f"missing from {WHEELS_DIR.relative_to(ROOT)}/: {', '.join(missing)}{hint}")
-    log(f"  all {len(wheels)} present")
+    own = [w.filename for w in wheels if w.filename.startswith(f"{pins.own_name}-")]
+    for name in own:
+        check_wheel_kernel_library(WHEELS_DIR / name, plat, library)
+    log(f"  all {len(wheels)} present; {', '.join(own)}: {kernel_wheel_path(platform_name)} inside")
 
     log("5/6 blender_ext.py build")
     cli = find_blender_ext(blender_ext)
@@ -1128,7 +1484,9 @@ def build(platform_name: str | None = None, pythons=DEFAULT_PYTHONS, out_dir: Pa
     zip_path = out_dir / f"{manifest['id']}-{manifest['version']}-{platform_name.replace('-', '_')}.zip"
     if not zip_path.is_file():
         raise PackagingError(f"blender_ext.py build did not write {zip_path}")
-    _run([*cli, "validate", zip_path], what="blender_ext.py validate", capture=True)
+    validated = _run([*cli, "validate", zip_path], what="blender_ext.py validate", capture=True)
+    for line in (validated.stdout or "").strip().splitlines():
+        log(f"  blender_ext.py validate: {line}")
 
     with zipfile.ZipFile(zip_path) as zf:
         inside = sorted(n.split("/", 1)[1] for n in zf.namelist() if n.startswith("wheels/") and n.endswith(".whl"))
@@ -1168,7 +1526,7 @@ def main(argv=None) -> int:
                         help="Python versions to ship wheels for (default: %(default)s)")
     parser.add_argument("--out", default=str(DEFAULT_OUT), help="output directory (default: dist/)")
     parser.add_argument("--rebuild", action="store_true",
-                        help="rebuild the compiled mlx3d_splat wheels even when up to date")
+                        help="rebuild the kernel library and the compiled mlx3d_splat wheels even when up to date")
     parser.add_argument("--blender-ext", default=None, help="path of Blender's blender_ext.py")
     args = parser.parse_args(argv)
     try:

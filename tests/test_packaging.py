@@ -20,6 +20,15 @@ pull exactly mlx and its library wheel from our wheel's Requires-Dist, and
 from ``[poses]`` pycolmap's wheel for the platform where the zip bundles it and
 the av wheel the zip carries.
 
+Each zip carries its platform's kernel library (mlx3d/csrc/kernels) inside our
+wheel, at ``mlx3d/_kernels/NAME`` where ``mlx3d.kernel_library`` loads it: the
+file's header says the platform's format and machine (read here byte by byte),
+its export table names ``mlx3d_kernels_abi``, and it keeps what the wheel's
+platform tag promises (glibc 2.17, macOS 11; the macOS one is signed). The
+linux-x64 zip's wheel, installed alone next to the zip's MLX, loads it. The pure wheels the other zips carry are
+therefore tagged for their platform (``py3-none-win_amd64``, ...); the generic
+``py3-none-any`` wheel (for pip, in no zip) has no library.
+
 Installing the linux-x64 zip into Blender and using it is
 ``tests/blender/test_extension_install.py``'s part.
 """
@@ -33,6 +42,9 @@ import importlib.util
 import io
 import json
 import os
+import platform as platform_module
+import re
+import struct
 import subprocess
 import sys
 import tomllib
@@ -52,7 +64,9 @@ HEADER = ROOT / "mlx3d" / "csrc" / "raster_math.h"
 # Per Blender platform: the platform tag of mlx 0.32.4's wheels, MLX's library
 # wheel there, pillow 13.0.0's, zstandard 0.25.0's and pycolmap 4.2.1's tags (None: pycolmap
 # publishes no wheel there), av 18.1.0's (one cp311-abi3 wheel for every Python), the
-# tags pip may pick for that platform, and its environment markers.
+# tags pip may pick for that platform, its environment markers, the platform tag of our
+# pure wheel there (None: the compiled wheel), and its kernel library: file name and
+# (format, machine) of its header.
 EXPECTED = {
     "linux-x64": {
         "mlx": "manylinux_2_35_x86_64",
@@ -64,6 +78,9 @@ EXPECTED = {
         "pip_tags": ("manylinux_2_35_x86_64", "manylinux_2_28_x86_64", "manylinux_2_17_x86_64"),
         "markers": {"sys_platform": "linux", "platform_system": "Linux", "platform_machine": "x86_64",
                     "os_name": "posix"},
+        "own": None,
+        "kernel": "libmlx3d_kernels.so",
+        "binary": ("ELF64", "x86-64"),
     },
     "macos-arm64": {
         "mlx": "macosx_14_0_arm64",
@@ -75,6 +92,9 @@ EXPECTED = {
         "pip_tags": ("macosx_14_0_arm64",),
         "markers": {"sys_platform": "darwin", "platform_system": "Darwin", "platform_machine": "arm64",
                     "os_name": "posix"},
+        "own": "macosx_11_0_arm64",
+        "kernel": "libmlx3d_kernels.dylib",
+        "binary": ("Mach-O 64", "arm64"),
     },
     "windows-x64": {
         "mlx": "win_amd64",
@@ -86,6 +106,9 @@ EXPECTED = {
         "pip_tags": ("win_amd64",),
         "markers": {"sys_platform": "win32", "platform_system": "Windows", "platform_machine": "AMD64",
                     "os_name": "nt"},
+        "own": "win_amd64",
+        "kernel": "mlx3d_kernels.dll",
+        "binary": ("PE32+", "x86-64"),
     },
     "linux-arm64": {
         "mlx": "manylinux_2_35_aarch64",
@@ -97,6 +120,9 @@ EXPECTED = {
         "pip_tags": ("manylinux_2_35_aarch64", "manylinux_2_28_aarch64", "manylinux_2_17_aarch64"),
         "markers": {"sys_platform": "linux", "platform_system": "Linux", "platform_machine": "aarch64",
                     "os_name": "posix"},
+        "own": "manylinux_2_17_aarch64",
+        "kernel": "libmlx3d_kernels.so",
+        "binary": ("ELF64", "aarch64"),
     },
 }
 PLATFORMS = tuple(EXPECTED)
@@ -170,7 +196,7 @@ def expected_wheels(pins, platform):
         if platform == "linux-x64":
             names.add(f"{own}-{py}-{py}-linux_x86_64.whl")
     if platform != "linux-x64":
-        names.add(f"{own}-py3-none-any.whl")
+        names.add(f"{own}-py3-none-{e['own']}.whl")
     return names
 
 
@@ -211,7 +237,7 @@ def test_one_mlx_and_one_of_our_wheels_per_python(platform, zips, pins):
     wheels = zips(platform).wheels
     for py in PYTHONS:
         mlx = [w for w in wheels if w.startswith("mlx-") and (f"-{py}-" in w)]
-        own = [w for w in wheels if w.startswith(f"{pins.own_name}-") and (f"-{py}-" in w or "-py3-none-any" in w)]
+        own = [w for w in wheels if w.startswith(f"{pins.own_name}-") and (f"-{py}-" in w or "-py3-none-" in w)]
         assert len(mlx) == 1 and len(own) == 1, (py, wheels)
     e = EXPECTED[platform]
     libraries = [w for w in wheels if w.startswith(("mlx_cpu-", "mlx_metal-"))]
@@ -308,14 +334,219 @@ def test_core_only_on_linux_x64_and_raster_math_everywhere(platform, zips, pins)
     for name in own:
         files = nested_wheel(result.zip_path, name).namelist()
         core = [f for f in files if f.startswith("mlx3d/_core")]
+        native = [f for f in files if f.endswith((".so", ".pyd", ".dylib", ".dll"))]
+        kernels = f"mlx3d/_kernels/{EXPECTED[platform]['kernel']}"
         if platform == "linux-x64":
             py = name.split("-")[2]
             assert core == [f"mlx3d/_core.cpython-{py[2:]}-x86_64-linux-gnu.so"], (name, core)
+            assert sorted(native) == sorted([*core, kernels]), (name, native)
         else:
-            assert name.endswith("-py3-none-any.whl")
-            assert core == [] and not any("_core" in f or f.endswith((".so", ".pyd", ".dylib")) for f in files)
+            assert name.endswith(f"-py3-none-{EXPECTED[platform]['own']}.whl")
+            assert core == [] and not any("_core" in f for f in files) and native == [kernels], (name, native)
         assert "mlx3d/render/raster_math.h" in files, name
         assert not any(f.startswith("mlx3d/csrc/") for f in files), name
+
+
+# ------------------------------------------------------------------ the kernel library
+# sys.platform of each Blender platform: the loader picks the file name by it.
+SYS_PLATFORM = {"linux-x64": "linux", "macos-arm64": "darwin", "windows-x64": "win32", "linux-arm64": "linux"}
+
+
+def binary_header(data: bytes) -> tuple[str, str]:
+    """(format, machine) of a shared library, read from its header; asserts that it is a shared library."""
+    if data[:4] == b"\x7fELF":
+        assert data[5] == 1, "not a little-endian ELF file"
+        e_type, e_machine = struct.unpack_from("<HH", data, 16)
+        assert e_type == 3, f"ELF type {e_type}: not a shared object (ET_DYN)"
+        return {1: "ELF32", 2: "ELF64"}[data[4]], {62: "x86-64", 183: "aarch64"}.get(e_machine, str(e_machine))
+    if data[:2] == b"MZ":
+        pe, = struct.unpack_from("<I", data, 0x3C)
+        assert data[pe:pe + 4] == b"PE\0\0", "MZ file without a PE header"
+        machine, _, _, _, _, _, characteristics = struct.unpack_from("<HHIIIHH", data, pe + 4)
+        magic, = struct.unpack_from("<H", data, pe + 24)
+        assert characteristics & 0x2000, "PE file without IMAGE_FILE_DLL: not a DLL"
+        return {0x20B: "PE32+", 0x10B: "PE32"}[magic], {0x8664: "x86-64", 0xAA64: "arm64"}.get(machine, hex(machine))
+    magic, cputype, _, filetype = struct.unpack_from("<IIII", data, 0)
+    if magic == 0xFEEDFACF:  # MH_MAGIC_64
+        assert filetype == 6, f"Mach-O file type {filetype}: not a dylib (MH_DYLIB)"
+        return "Mach-O 64", {0x0100000C: "arm64", 0x01000007: "x86-64"}.get(cputype, hex(cputype))
+    return "unknown", data[:4].hex()
+
+
+def _c_string(data: bytes, offset: int) -> str:
+    return data[offset:data.index(b"\0", offset)].decode()
+
+
+def exported_names(data: bytes) -> set[str]:
+    """The names a shared library exports, from its own tables: ELF's .dynsym (defined, global or weak, default
+    visibility), PE's export directory, Mach-O's symbol table (external, defined in a section, not private)."""
+    kind = binary_header(data)[0]
+    names = set()
+    if kind == "ELF64":
+        shoff, = struct.unpack_from("<Q", data, 40)
+        shentsize, shnum = struct.unpack_from("<HH", data, 58)
+        # sh_name, sh_type, sh_flags, sh_addr, sh_offset, sh_size, sh_link, sh_info, sh_addralign, sh_entsize
+        sections = [struct.unpack_from("<IIQQQQIIQQ", data, shoff + i * shentsize) for i in range(shnum)]
+        for _, sh_type, _, _, offset, size, link, _, _, entsize in sections:
+            if sh_type == 11:  # SHT_DYNSYM
+                strtab = sections[link][4]
+                for i in range(size // entsize):
+                    st_name, st_info, st_other, st_shndx = struct.unpack_from("<IBBH", data, offset + i * entsize)
+                    if st_shndx != 0 and st_info >> 4 in (1, 2) and st_other & 3 == 0:
+                        names.add(_c_string(data, strtab + st_name))
+    elif kind == "PE32+":
+        pe, = struct.unpack_from("<I", data, 0x3C)
+        nsections, = struct.unpack_from("<H", data, pe + 6)
+        optional_size, = struct.unpack_from("<H", data, pe + 20)
+        export_rva, = struct.unpack_from("<I", data, pe + 24 + 112)  # data directory 0 of a PE32+ optional header
+        # VirtualSize, VirtualAddress, SizeOfRawData, PointerToRawData of each section
+        sections = [struct.unpack_from("<IIII", data, pe + 24 + optional_size + 40 * i + 8) for i in range(nsections)]
+
+        def at(rva: int) -> int:
+            for virtual_size, address, raw_size, raw in sections:
+                if address <= rva < address + max(virtual_size, raw_size):
+                    return rva - address + raw
+            raise AssertionError(f"RVA {rva:#x} lies in no section")
+
+        if export_rva:
+            directory = at(export_rva)
+            count, = struct.unpack_from("<I", data, directory + 24)  # NumberOfNames
+            table = at(struct.unpack_from("<I", data, directory + 32)[0])  # AddressOfNames
+            names |= {_c_string(data, at(struct.unpack_from("<I", data, table + 4 * i)[0])) for i in range(count)}
+    elif kind == "Mach-O 64":
+        ncmds, = struct.unpack_from("<I", data, 16)
+        offset = 32
+        for _ in range(ncmds):
+            cmd, size = struct.unpack_from("<II", data, offset)
+            if cmd == 0x2:  # LC_SYMTAB
+                symoff, nsyms, stroff, _ = struct.unpack_from("<IIII", data, offset + 8)
+                for i in range(nsyms):
+                    n_strx, n_type = struct.unpack_from("<IB", data, symoff + 16 * i)
+                    if n_type & 0x01 and n_type & 0x0E == 0x0E and not n_type & 0x10:  # N_EXT, N_SECT, not N_PEXT
+                        names.add(_c_string(data, stroff + n_strx).removeprefix("_"))
+            offset += size
+    return names
+
+
+def zip_kernel_library(result, pins, platform) -> bytes:
+    """The kernel library our wheel(s) in a zip carry (one build for every Python), checked to be the one file of
+    mlx3d/_kernels/ and listed in RECORD with its hash and size."""
+    path = f"mlx3d/_kernels/{EXPECTED[platform]['kernel']}"
+    dist_info = f"{pins.own_name}-{pins.own_version}.dist-info"
+    found = set()
+    for name in sorted(w for w in result.wheels if w.startswith(f"{pins.own_name}-")):
+        inner = nested_wheel(result.zip_path, name)
+        assert [f for f in inner.namelist() if f.startswith("mlx3d/_kernels/")] == [path], name
+        data = inner.read(path)
+        record = {row[0]: row[1:] for row in csv.reader(io.StringIO(inner.read(f"{dist_info}/RECORD").decode())) if row}
+        digest = base64.urlsafe_b64encode(hashlib.sha256(data).digest()).rstrip(b"=").decode()
+        assert record[path] == [f"sha256={digest}", str(len(data))], (name, record.get(path))
+        found.add(data)
+    assert len(found) == 1, f"{platform}: the wheels carry {len(found)} different libraries"
+    return found.pop()
+
+
+@pytest.mark.parametrize("platform", PLATFORMS)
+def test_each_zip_carries_its_platforms_kernel_library(platform, zips, pins):
+    """Exactly the platform's library, at the path the loader reads there, of the platform's binary format, exporting
+    the ABI function; the wheel that carries it claims that platform (no ``any``), installed into platlib."""
+    from mlx3d import kernel_library
+
+    e = EXPECTED[platform]
+    assert kernel_library.LIBRARY_NAMES.get(SYS_PLATFORM[platform], "libmlx3d_kernels.so") == e["kernel"]
+    result = zips(platform)
+    data = zip_kernel_library(result, pins, platform)
+    assert binary_header(data) == e["binary"], platform
+    assert "mlx3d_kernels_abi" in exported_names(data)
+    for name in (w for w in result.wheels if w.startswith(f"{pins.own_name}-")):
+        wheel_meta = nested_wheel(result.zip_path, name).read(f"{pins.own_name}-{pins.own_version}.dist-info/WHEEL")
+        lines = wheel_meta.decode().splitlines()
+        tags = [line.removeprefix("Tag: ") for line in lines if line.startswith("Tag: ")]
+        py = name.split("-")[2]
+        assert tags == ([f"{py}-{py}-linux_x86_64"] if platform == "linux-x64" else [f"py3-none-{e['own']}"]), tags
+        assert "Root-Is-Purelib: false" in lines, lines
+
+
+def test_kernel_libraries_keep_their_wheel_tags_promise(zips, pins):
+    """manylinux_2_17_aarch64: no glibc symbol newer than 2.17, and no C++ runtime of the system's;
+    macosx_11_0_arm64: a minimum macOS of 11.0 or older (LC_BUILD_VERSION), and a code signature, without which
+    macOS on Apple silicon refuses arm64 code (an ad hoc one will do)."""
+    data = zip_kernel_library(zips("linux-arm64"), pins, "linux-arm64")
+    versions = {(int(a), int(b)) for a, b in re.findall(rb"GLIBC_(\d+)\.(\d+)", data)}
+    assert versions and max(versions) <= (2, 17), sorted(versions)
+    assert not re.search(rb"GLIBCXX_|CXXABI_|libstdc\+\+|libc\+\+\.so", data), "the C++ runtime is not inside"
+    data = zip_kernel_library(zips("macos-arm64"), pins, "macos-arm64")
+    ncmds, = struct.unpack_from("<I", data, 16)
+    offset, minimum, signature = 32, None, None
+    for _ in range(ncmds):
+        cmd, size = struct.unpack_from("<II", data, offset)
+        if cmd == 0x32:  # LC_BUILD_VERSION: platform, minos (xxxx.yy.zz), sdk, ntools
+            platform_id, minos = struct.unpack_from("<II", data, offset + 8)
+            assert platform_id == 1, platform_id  # PLATFORM_MACOS
+            minimum = (minos >> 16, (minos >> 8) & 0xFF)
+        elif cmd == 0x1D:  # LC_CODE_SIGNATURE: dataoff, datasize
+            start, length = struct.unpack_from("<II", data, offset + 8)
+            signature = data[start:start + length]
+        offset += size
+    assert minimum is not None and minimum <= (11, 0), minimum
+    assert signature and struct.unpack_from(">I", signature, 0)[0] == 0xFADE0CC0, "no embedded code signature"
+
+
+LOAD_KERNELS = r"""
+import json
+import mlx.core as mx
+import mlx3d
+import mlx3d.kernel_library as kernels
+loaded = kernels.available()
+print(json.dumps({"mlx3d": mlx3d.__file__, "mlx": mx.__file__, "path": str(kernels.library_path()),
+                  "available": loaded, "failure": kernels.failure(),
+                  "build": kernels.build_info() if loaded else None}))
+"""
+
+
+def test_linux_x64_zips_wheel_loads_its_kernel_library(zips, pins, tmp_path):
+    """The zip's wheels (ours for the running Python, mlx, mlx-cpu) installed into an empty folder: a Python
+    with that folder on PYTHONPATH (and numpy, as in Blender), no site-packages, loads the library from it."""
+    if (sys.platform, platform_module.machine()) != ("linux", "x86_64"):
+        pytest.skip("the linux-x64 library runs on Linux x86-64 only")
+    result = zips("linux-x64")
+    py, e, mlx = "cp{}{}".format(*sys.version_info[:2]), EXPECTED["linux-x64"], pins.bundled["mlx"]
+    names = [f"{pins.own_name}-{pins.own_version}-{py}-{py}-linux_x86_64.whl", f"mlx-{mlx}-{py}-{py}-{e['mlx']}.whl",
+             f"{e['library']}-{mlx}-py3-none-{e['mlx']}.whl"]
+    with zipfile.ZipFile(result.zip_path) as zf:
+        for name in names:
+            (tmp_path / name).write_bytes(zf.read(f"wheels/{name}"))
+    site = tmp_path / "site"
+    subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-index", "--no-deps", "--target", str(site),
+                    *(str(tmp_path / n) for n in names)], check=True, capture_output=True, text=True)
+    env = {k: v for k, v in os.environ.items() if k not in ("MLX3D_KERNELS", "MLX3D_NO_CORE", "PYTHONHOME")}
+    env["PYTHONPATH"] = os.pathsep.join([str(site), str(numpy_only(tmp_path))])
+    # -S: no site-packages, so neither the venv's mlx nor its editable mlx3d; PYTHONPATH alone.
+    run = subprocess.run([sys.executable, "-S", "-c", LOAD_KERNELS], cwd=tmp_path, env=env, capture_output=True,
+                         text=True, timeout=300)
+    assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
+    report = json.loads(run.stdout.strip().splitlines()[-1])
+    assert report["mlx3d"].startswith(str(site)) and report["mlx"].startswith(str(site)), report
+    assert report["path"] == str((site / "mlx3d" / "_kernels" / e["kernel"]).resolve()), report
+    assert report["available"] is True and report["failure"] is None, report
+    assert report["build"], report
+
+
+def test_missing_zig_stops_the_zip_and_names_make_cross_tools(package, monkeypatch, tmp_path):
+    """Without zig a cross-compiled platform's library cannot be built: the build stops before any zip is written,
+    and the message says what to run."""
+    def no_zig():
+        raise SystemExit("zig was not found")
+
+    monkeypatch.setattr(package.kernel_build(), "zig", no_zig)
+    monkeypatch.setattr(package, "_run", lambda *args, **kwargs: pytest.fail(f"ran {args[0]}"))
+    with pytest.raises(package.PackagingError, match=r"windows-x64 kernel library .* zig.*`make cross-tools`"):
+        package.build_kernel_library("windows-x64", rebuild=True)
+    for step in ("download_wheels", "check_mlx_requirements", "check_bundled_markers"):  # not this test's subject
+        monkeypatch.setattr(package, step, lambda *args: None)
+    with pytest.raises(package.PackagingError, match="make cross-tools"):
+        package.build("linux-arm64", package.DEFAULT_PYTHONS, tmp_path, rebuild=True, update_manifest=False)
+    assert list(tmp_path.iterdir()) == []
 
 
 # ------------------------------------------------------------------ the pure wheel
@@ -355,10 +586,14 @@ def test_pure_wheel_metadata_and_record(pure_wheel, pins):
         expected = base64.urlsafe_b64encode(hashlib.sha256(data).digest()).rstrip(b"=").decode()
         assert digest == f"sha256={expected}" and int(size) == len(data), path
     assert contents["mlx3d/render/raster_math.h"] == HEADER.read_bytes()
+    # The generic wheel (for pip, in no zip) leaves the kernel library out, as `pip install .` does.
+    assert not any(n.startswith("mlx3d/_kernels/") or n.endswith((".so", ".dll", ".dylib")) for n in contents)
+    exclude = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["scikit-build"]["wheel"]["exclude"]
+    assert "mlx3d/_kernels/**" in exclude
 
 
 def test_pure_wheel_has_the_compiled_wheels_files(pure_wheel, package, pins):
-    """The pure wheel is the compiled one less ``_core``: same files, same Requires-Dist."""
+    """The pure wheel is the compiled one less ``_core`` and the kernel library: same files, same Requires-Dist."""
     host = package.host_platform()
     if host is None or not package.PLATFORMS[host].compiled:
         pytest.skip("no compiled wheel is built on this machine")
@@ -369,7 +604,8 @@ def test_pure_wheel_has_the_compiled_wheels_files(pure_wheel, package, pins):
 
     def files(path):
         with zipfile.ZipFile(path) as zf:
-            return {n for n in zf.namelist() if ".dist-info/" not in n and not n.startswith("mlx3d/_core")}
+            return {n for n in zf.namelist()
+                    if ".dist-info/" not in n and not n.startswith(("mlx3d/_core", "mlx3d/_kernels/"))}
 
     def requires(path):  # as packaging writes them (quotes, order of specifiers)
         return sorted(str(requirement(r)) for r in package.wheel_requires_dist(path))
@@ -396,6 +632,20 @@ print(json.dumps({
 """
 
 
+def numpy_only(tmp_path) -> Path:
+    """A folder with the venv's numpy alone (Blender ships it): not the venv's site-packages, which would bring
+    its own mlx (and mlx3d)."""
+    import numpy
+
+    numpy_dir = tmp_path / "numpy-only"
+    numpy_dir.mkdir()
+    site = Path(numpy.__file__).resolve().parents[1]
+    for name in ("numpy", "numpy.libs"):
+        if (site / name).exists():
+            (numpy_dir / name).symlink_to(site / name)
+    return numpy_dir
+
+
 def test_pure_wheel_installs_and_imports_in_a_clean_interpreter(pure_wheel, package, pins, zips, tmp_path):
     """pip installs the pure wheel and this machine's MLX wheels into an empty folder; mlx3d imports from there."""
     host = package.host_platform()
@@ -411,15 +661,7 @@ def test_pure_wheel_installs_and_imports_in_a_clean_interpreter(pure_wheel, pack
     subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-index", "--no-deps", "--target",
                     str(target), *map(str, wheels)], check=True, capture_output=True, text=True)
     assert (target / "mlx3d" / "render" / "raster_math.h").read_bytes() == HEADER.read_bytes()
-    # numpy alone (Blender ships it): not the venv's site-packages, which would bring its own mlx.
-    import numpy
-
-    numpy_dir = tmp_path / "numpy-only"
-    numpy_dir.mkdir()
-    site = Path(numpy.__file__).resolve().parents[1]
-    for name in ("numpy", "numpy.libs"):
-        if (site / name).exists():
-            (numpy_dir / name).symlink_to(site / name)
+    numpy_dir = numpy_only(tmp_path)
     result = subprocess.run(
         [sys.executable, "-I", "-S", "-c", CLEAN_IMPORT, str(target), str(numpy_dir), str(HEADER)],
         cwd=tmp_path, env={**os.environ, "MLX3D_NO_CORE": "1"}, capture_output=True, text=True, timeout=300,

@@ -49,7 +49,10 @@ def test_manifest_wheels_follow_the_pins(package_script):
         assert f"mlx-{pins.bundled['mlx']}-{py}-{py}-macosx_14_0_arm64.whl" in names
         assert f"pillow-{pins.bundled['pillow']}-{py}-{py}-manylinux_2_27_x86_64.manylinux_2_28_x86_64.whl" in names
         assert f"pillow-{pins.bundled['pillow']}-{py}-{py}-macosx_11_0_arm64.whl" in names
-    assert f"mlx3d_splat-{pins.own_version}-py3-none-any.whl" in names  # pure Python: macOS, Windows, Linux arm64
+    # Pure Python with the platform's kernel library: macOS, Windows, Linux arm64.
+    for tag in ("macosx_11_0_arm64", "win_amd64", "manylinux_2_17_aarch64"):
+        assert f"mlx3d_splat-{pins.own_version}-py3-none-{tag}.whl" in names
+    assert f"mlx3d_splat-{pins.own_version}-py3-none-any.whl" not in names  # none of ours claims every platform
     assert "numpy" not in names
 
 
