@@ -305,3 +305,27 @@ def test_ctrl_c_stops_every_rank_after_the_same_step_and_rank_0_saves(tmp_path):
     assert 0 < step < 1000
     assert GaussianTrainer.load_checkpoint(tmp_path / "checkpoint.npz").step_count == step
     assert (tmp_path / "cut.ply").exists()
+
+
+def test_statistics_reduced_over_ranks_stay_float64_and_take_the_next_views():
+    """The densification statistics summed over the ranks come back as float64 numpy arrays at full precision
+    (MLX makes float64 numpy input float32 unless told), so the next view's statistics are added into them (a
+    float32 array was silently copied by the compiled kernel's binding and the view lost)."""
+    from mlx3d.cameras import Camera
+    from mlx3d.render import resolve_backend
+    from mlx3d.training.distributed import Ranks
+    from mlx3d.training.statistics import ScreenStatistics
+
+    ranks = Ranks(mx.distributed.init())
+    fine = np.array([1.0 + 2.0 ** -40, 3.0])
+    assert ranks.host_sum(fine, "a sum").dtype == np.float64 and np.array_equal(ranks.host_sum(fine, "a sum"), fine * ranks.size)
+    stats = ScreenStatistics(3)
+    camera = Camera.look_at(eye=(0, -3, 0), at=(0, 0, 0), up=(0, 0, 1), fov=60, width=64, height=48)
+    view = (mx.array([True, False, True]), mx.array([[0.5, 0.0], [1.0, 1.0], [0.0, 0.25]]), mx.array([3, 9, 5]))
+    stats.add(camera, *view, resolve_backend("auto"))
+    stats.reduce(ranks)
+    stats.add(camera, *view, resolve_backend("auto"))
+    accum, count, max_radii = stats.arrays()
+    assert all(a.dtype == np.float64 for a in (accum, count, max_radii))
+    np.testing.assert_allclose(accum, [2 * 0.5 * 32, 0.0, 2 * 0.25 * 24])
+    assert count.tolist() == [2.0, 0.0, 2.0] and max_radii.tolist() == [3.0, 9.0, 5.0]

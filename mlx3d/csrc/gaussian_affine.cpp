@@ -39,8 +39,8 @@ void affine_covariances(const Lin& linear, const Quats& quats, const Scales& log
 }  // namespace
 
 void bind_gaussian_affine(nb::module_& m) {
-  m.def("affine_covariances", &affine_covariances, "linear"_a, "quats"_a, "log_scales"_a, "quats_out"_a,
-        "log_scales_out"_a, "num_threads"_a = 0,
+  m.def("affine_covariances", &affine_covariances, "linear"_a, "quats"_a, "log_scales"_a, "quats_out"_a.noconvert(),
+        "log_scales_out"_a.noconvert(), "num_threads"_a = 0,
         "Covariances R diag(s)² Rᵀ of (N,4) quats and (N,3) log scales mapped by a 3x3 float64 linear\n"
         "map L (L Σ Lᵀ), re-decomposed into unit quaternions and descending log scales written to\n"
         "the float32 outputs. Threaded; releases the GIL.");

@@ -39,8 +39,8 @@ void add_screen_statistics(const In<bool>& visible, const In<float>& grad2d, con
 }  // namespace
 
 void bind_screen_statistics(nb::module_& m) {
-  m.def("add_screen_statistics", &add_screen_statistics, "visible"_a, "grad2d"_a, "radii"_a, "sx"_a, "sy"_a, "grad_accum"_a,
-        "grad_count"_a, "max_radii"_a, "num_threads"_a = 0,
+  m.def("add_screen_statistics", &add_screen_statistics, "visible"_a, "grad2d"_a, "radii"_a, "sx"_a, "sy"_a, "grad_accum"_a.noconvert(),
+        "grad_count"_a.noconvert(), "max_radii"_a.noconvert(), "num_threads"_a = 0,
         "Adds one view to the float64 (N,) densification statistics in place: grad_accum += |grad2d * (sx, sy)| where\n"
         "visible (bool (N,)), grad_count += visible, max_radii = max(max_radii, radii (int32 (N,))); grad2d float32 (N,2).");
 }

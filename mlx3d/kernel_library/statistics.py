@@ -18,7 +18,10 @@ def add_screen_statistics(visible, grad2d, radii, sx: float, sy: float, grad_acc
     n = grad_accum.shape[0] if isinstance(grad_accum, np.ndarray) else -1
     for name, a in zip(("grad_accum", "grad_count", "max_radii"), stats):
         if not (isinstance(a, np.ndarray) and a.dtype == np.float64 and a.shape == (n,) and a.flags.c_contiguous and a.flags.writeable):
-            raise ValueError(f"{name} must be a writable C-contiguous float64 (N,) numpy array, as the other statistics")
+            got = (f"{a.dtype} {a.shape}{'' if a.flags.c_contiguous else ', strided'}{'' if a.flags.writeable else ', read-only'}"
+                   if isinstance(a, np.ndarray) else type(a).__name__)
+            raise ValueError(f"{name} must be a writable C-contiguous float64 (N,) numpy array, as the other statistics "
+                             f"(N = {n}), got {got}")
     threads = _threads(num_threads)
     vis, g, r = (_numpy_in(visible, np.bool_, "visible", n), _numpy_in(grad2d, np.float32, "grad2d", 2 * n),
                  _numpy_in(radii, np.int32, "radii", n))

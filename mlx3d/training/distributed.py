@@ -99,12 +99,12 @@ class Ranks:
     def host_sum(self, values: np.ndarray, what: str) -> np.ndarray:
         """A float64 numpy array summed over the ranks (computed on the CPU)."""
         with mx.stream(mx.cpu):
-            return np.array(self._run(what, mx.distributed.all_sum, mx.array(np.asarray(values, np.float64))))
+            return np.array(self._run(what, mx.distributed.all_sum, mx.array(np.asarray(values, np.float64), dtype=mx.float64)))
 
     def host_max(self, values: np.ndarray, what: str) -> np.ndarray:
         """A float64 numpy array's elementwise maximum over the ranks."""
         with mx.stream(mx.cpu):
-            return np.array(self._run(what, mx.distributed.all_max, mx.array(np.asarray(values, np.float64))))
+            return np.array(self._run(what, mx.distributed.all_max, mx.array(np.asarray(values, np.float64), dtype=mx.float64)))
 
     def broadcast(self, arrays: dict, what: str) -> dict:
         """Rank 0's ``arrays`` (name -> array) on every rank; other ranks' values are ignored, shapes may differ."""
