@@ -1,6 +1,8 @@
-"""``needs_core``: the mark of tests about the compiled module ``mlx3d._core`` itself (its kernels, their
-threads and bits). They skip, with the reason, where the module is missing or turned off
-(``MLX3D_NO_CORE``, as ``make test-pure`` runs the suite); everything else runs either way.
+"""``needs_core``: the mark of tests about the compiled CPU kernels (their results, threads and bits), in
+``mlx3d._core`` or the kernel library in its place (``mlx3d.native``). They skip, with the reason, where
+neither is there or they are turned off (``MLX3D_NO_CORE``, as ``make test-pure`` runs the suite); everything
+else runs either way. ``needs_extension``: tests of what only the MLX extension ``mlx3d._core`` does (linking
+MLX, MLX's buffer donation), which also skip where the kernel library serves (``MLX3D_CPU_KERNELS=library``).
 ``long_training``: the mark of the few tests that train long enough to assert a quality users rely on. They
 would take most of CI's time on the pure MLX path (its trainer is the same code, which the other training
 tests run there), and what they measure depends on the trainer and kernels, not on the Python or numpy
@@ -18,7 +20,9 @@ import pytest
 
 from mlx3d import native
 
-needs_core = pytest.mark.skipif(not native.available(), reason="tests mlx3d._core itself, which is not available here (not built, or MLX3D_NO_CORE is set)")
+needs_core = pytest.mark.skipif(not native.available(), reason="tests the compiled CPU kernels, not available here (not built, or MLX3D_NO_CORE is set)")
+needs_extension = pytest.mark.skipif(not native.available() or native.core().__name__ != "mlx3d._core",
+                                     reason="tests the MLX extension mlx3d._core itself, which does not serve the CPU kernels here")
 
 SECOND_SUITE = os.environ.get("MLX3D_SECOND_SUITE") == "1"
 long_training = pytest.mark.skipif(

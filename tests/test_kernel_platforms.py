@@ -569,11 +569,11 @@ def test_bad_calls_are_errors_that_name_the_problem(builds, monkeypatch):
     strided = mx.concatenate([means, means], axis=1)[:, :3]  # rows 6 floats apart: read through one copy
     assert np.array_equal(np.array(kernel_library.sh_colors([dc, rest], strided, centre, 3)),
                           np.array(kernel_library.sh_colors([dc, rest], means, centre, 3)))
-    with pytest.raises(RuntimeError, match="mlx3d_sh_forward: degree 3 needs at least 16 coefficients, got 1"):
+    with pytest.raises(ValueError, match="sh_colors: degree 3 needs K >= 16 coefficients, got 1"):
         kernel_library.sh_colors([dc], means, centre, 3)
     with pytest.raises(TypeError, match="means must be float32, got mlx.core.float16"):
         kernel_library.sh_colors([dc, rest], means.astype(mx.float16), centre, 3)
-    with pytest.raises(ValueError, match=r"means must have shape \(500, 3\), got \(499, 3\)"):
+    with pytest.raises(ValueError, match=r"means must have shape \(N, 3\) = \(500, 3\), got \(499, 3\)"):
         kernel_library.sh_colors([dc, rest], means[1:], centre, 3)
     use_library(monkeypatch, folder / "nowhere.so")
     assert not kernel_library.available() and "nowhere.so does not exist" in kernel_library.failure()
@@ -604,7 +604,7 @@ def test_statistics_in_process_are_numpys_and_cores(builds, monkeypatch):
             assert all(c.tobytes() == g.tobytes() for c, g in zip(core, stats))
     with pytest.raises(ValueError, match="grad_count must be a writable C-contiguous float64"):
         kernel_library.add_screen_statistics(visible, grad2d, radii, sx, sy, stats[0], stats[1].astype(np.float32), stats[2])
-    with pytest.raises(ValueError, match="radii must hold 500 elements, got 499"):
+    with pytest.raises(ValueError, match=r"must agree on N = 500, got 500, \(500, 2\) and 499"):
         kernel_library.add_screen_statistics(visible, grad2d, radii[1:], sx, sy, *stats)
 
 
@@ -628,9 +628,9 @@ def test_knn_in_process_is_cores_and_the_numpy_trees(builds, monkeypatch):
             for g, w in zip(got, want):
                 for a, b in zip(g if isinstance(g, tuple) else (g,), w if isinstance(w, tuple) else (w,)):
                     assert np.asarray(a).tobytes() == np.asarray(b).astype(np.asarray(a).dtype).tobytes()
-    with pytest.raises(RuntimeError, match="mlx3d_knn_query: k must be >= 1, got 0"):
+    with pytest.raises(ValueError, match="mlx3d_knn_query: k must be >= 1, got 0"):
         trees[0].query(queries, 0)
-    with pytest.raises(RuntimeError, match="mlx3d_knn_build: leaf_size must be >= 1, got 0"):
+    with pytest.raises(ValueError, match="mlx3d_knn_build: leaf_size must be >= 1, got 0"):
         kernel_library.KDTree(means, 0)
 
 
@@ -661,7 +661,7 @@ def test_other_platforms_builds_give_the_linux_builds_results(builds, platform, 
     calls = base + [] + raster_calls() + projection_calls() + binning_calls() + photometric_calls() + optim_calls()  # the other areas' calls (add yours here): compared with the linux-x64 build's bits
     reference = run_driver(builds("linux-x64"), "linux-x64", [], calls, tmp_path)
     bad = len(sh_calls()) - 1
-    assert reference[bad][0] == 1 and "degree must be 0..3, got 4" in reference[bad][1]
+    assert reference[bad][0] == 2 and "degree must be 0..3, got 4" in reference[bad][1]  # 2: an invalid argument
     assert all(rc == 0 and np.isfinite(np.concatenate(outs)).all() for rc, _, outs in reference[:bad])
     for (name, args), (rc, _, outs) in zip(base[bad + 1:], reference[bad + 1:len(base)]):
         assert rc == 0
@@ -923,13 +923,13 @@ def test_photometric_bad_calls_are_errors_that_name_the_problem(builds, monkeypa
     # the C functions check their arguments themselves
     a, out = np.zeros((4, 5, 3), np.float32), np.zeros(60, np.float32)
     t = photometric_taps()
-    with pytest.raises(RuntimeError, match=r"mlx3d_photometric_loss: lambda must be in \[0, 1\], got 1.500000"):
+    with pytest.raises(ValueError, match=r"mlx3d_photometric_loss: lambda must be in \[0, 1\], got 1.500000"):
         _call("mlx3d_photometric_loss", _ptr(a), _ptr(a), None, 4, 5, 3, 1.5, _ptr(t), 11, 1, None, _ptr(out), _ptr(out))
-    with pytest.raises(RuntimeError, match=r"mlx3d_photometric_loss: taps must have an odd, positive length, got 0"):
+    with pytest.raises(ValueError, match=r"mlx3d_photometric_loss: taps must have an odd, positive length, got 0"):
         _call("mlx3d_photometric_loss", _ptr(a), _ptr(a), None, 4, 5, 3, 0.2, _ptr(t), 0, 1, None, _ptr(out), _ptr(out))
-    with pytest.raises(RuntimeError, match=r"mlx3d_mse: the image must be \(H, W, C\) with H, W, C >= 1, got \(0, 5, 3\)"):
+    with pytest.raises(ValueError, match=r"mlx3d_mse: the image must be \(H, W, C\) with H, W, C >= 1, got \(0, 5, 3\)"):
         _call("mlx3d_mse", _ptr(a), _ptr(a), None, 0, 5, 3, 0, 1, _ptr(out))
-    with pytest.raises(RuntimeError, match=r"mlx3d_mse: a null pointer \(only weights may be NULL\)"):
+    with pytest.raises(ValueError, match=r"mlx3d_mse: a null pointer \(only weights may be NULL\)"):
         _call("mlx3d_mse", _ptr(a), None, None, 4, 5, 3, 0, 1, _ptr(out))
 
 
@@ -952,8 +952,8 @@ def test_photometric_driver_calls_are_cores(builds, monkeypatch, tmp_path):
         lam, taps, threads = args[6][1], [float(t) for t in args[7][1]], args[9][1]
         value, grad = mx.value_and_grad(lambda a: api.photometric_loss(a, y, w, lam, taps, threads))(x)
         assert rc == 0 and outs[1].tobytes() == np.array(value).reshape(1).tobytes() and outs[2].tobytes() == np.array(grad).ravel().tobytes()
-    assert [r[:2] for r in results[-2:]] == [(1, "mlx3d_photometric_loss: lambda must be in [0, 1], got 1.500000"),
-                                             (1, "mlx3d_photometric_loss: taps must have an odd, positive length, got 10")]
+    assert [r[:2] for r in results[-2:]] == [(2, "mlx3d_photometric_loss: lambda must be in [0, 1], got 1.500000"),
+                                             (2, "mlx3d_photometric_loss: taps must have an odd, positive length, got 10")]
 
 
 # ---- optimizer and activations tests ----
@@ -1102,15 +1102,15 @@ def test_optim_bad_calls_are_errors_that_name_the_problem(builds, monkeypatch):
     from mlx3d.kernel_library import _call, _ptr
 
     x = np.zeros(10, np.float32)
-    with pytest.raises(RuntimeError, match=r"mlx3d_adam_moment: squared must be 0 \(first moment\) or 1 \(second moment\), got 2"):
+    with pytest.raises(ValueError, match=r"mlx3d_adam_moment: squared must be 0 \(first moment\) or 1 \(second moment\), got 2"):
         _call("mlx3d_adam_moment", _ptr(x), _ptr(x), 10, 0.9, 2, 1, _ptr(np.zeros(10, np.float32)))
-    with pytest.raises(RuntimeError, match=r"mlx3d_adam_moment: out must be x \(in place\) or not overlap it"):
+    with pytest.raises(ValueError, match=r"mlx3d_adam_moment: out must be x \(in place\) or not overlap it"):
         _call("mlx3d_adam_moment", _ptr(np.zeros(9, np.float32)), _ptr(x[:9]), 9, 0.9, 0, 1, _ptr(x[1:]))
-    with pytest.raises(RuntimeError, match="mlx3d_adam_param: p_out must not overlap m or v"):
+    with pytest.raises(ValueError, match="mlx3d_adam_param: p_out must not overlap m or v"):
         _call("mlx3d_adam_param", _ptr(x[:5]), _ptr(x[5:]), _ptr(x[5:]), 5, 1e-3, 1e-15, 0.1, 0.001, 1, _ptr(x[5:]))
-    with pytest.raises(RuntimeError, match="mlx3d_exp: the element count must be >= 0, got -1"):
+    with pytest.raises(ValueError, match="mlx3d_exp: the element count must be >= 0, got -1"):
         _call("mlx3d_exp", _ptr(x), -1, 1, _ptr(x))
-    with pytest.raises(RuntimeError, match=r"mlx3d_affine_covariances: threads must be >= 0 \(0 = every hardware thread\), got -1"):
+    with pytest.raises(ValueError, match=r"mlx3d_affine_covariances: threads must be >= 0 \(0 = every hardware thread\), got -1"):
         _call("mlx3d_affine_covariances", _ptr(np.eye(3)), _ptr(q), _ptr(s), 5, -1, _ptr(q.copy()), _ptr(s.copy()))
 
 
@@ -1139,8 +1139,8 @@ def test_optim_driver_calls_are_numpys_mlxs_and_the_in_process_librarys(builds, 
             lib.affine_covariances(a[0], a[1], a[2], q, s)
             assert same_bits(outs[0], q) and same_bits(outs[1], s)
     (rc0, error0, _), (rc1, error1, _) = results[-2:]
-    assert rc0 == 1 and error0 == "mlx3d_adam_moment: squared must be 0 (first moment) or 1 (second moment), got 2"
-    assert rc1 == 1 and error1.startswith("mlx3d_adam_param: the bias corrections c1, c2 must be > 0")
+    assert rc0 == 2 and error0 == "mlx3d_adam_moment: squared must be 0 (first moment) or 1 (second moment), got 2"
+    assert rc1 == 2 and error1.startswith("mlx3d_adam_param: the bias corrections c1, c2 must be > 0")
 
 
 def test_macos_build_is_an_arm64_library_exporting_the_api(builds):

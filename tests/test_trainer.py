@@ -11,7 +11,7 @@ from mlx3d.splatting import GaussianModel
 from mlx3d.training.adam import Adam
 from mlx3d.training.density import add_gaussians_mcmc, densify_and_prune, relocate_dead, relocation_correction, reset_opacities, sgld_noise
 from mlx3d.training.trainer import GaussianTrainer, TrainerConfig, TrainingError, events_at
-from core_marks import needs_core
+from core_marks import needs_core, needs_extension
 from thread_counts import per_thread_count
 
 
@@ -133,7 +133,7 @@ def _address(a: mx.array) -> int:
     return np.asarray(a).__array_interface__["data"][0]
 
 
-@needs_core
+@needs_extension
 def test_cpu_adam_writes_over_its_inputs_only_where_nothing_else_holds_them():
     # the kernels reuse the old moments' memory, and the old parameters' when the caller dropped them
     # (no fresh pages per step); an array that shares a moment's memory (a view), a parameter the caller

@@ -144,9 +144,6 @@ void bind_knn(nb::module_& m) {
           },
           "queries"_a, "k"_a, "self_index"_a = nb::none(), "num_threads"_a = 0,
           "Euclidean distance to the k-th nearest point, float32 (M,).");
-
-  m.def("hardware_threads", &knn::KDTree::hardware_threads,
-        "Number of hardware threads (what num_threads=0 uses).");
 }
 
 }  // namespace mlx3d

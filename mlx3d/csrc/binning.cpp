@@ -50,7 +50,8 @@ std::pair<mx::array, mx::array> bin_tiles(const Vec2& means2d, const Vec1& radii
     rc = mlx3d_bin_tiles(means2d.data(), radii.data(), depths.data(), n, width, height, tile_size, conics ? conics->data() : nullptr,
                          opacities ? opacities->data() : nullptr, num_threads, offsets.data(), &ids, &total);
   }
-  if (rc != 0) throw std::overflow_error(mlx3d_last_error());
+  if (rc == 1) throw std::overflow_error(mlx3d_last_error());  // more entries than int32 indices reach
+  check_call(rc);
   // MLX int32 vectors that take over the blocks without a copy (the 38M entries of a 1M-Gaussian frame took
   // ~90 ms to copy).
   const mx::array ids_array = total == 0 ? mx::array({}, mx::int32)

@@ -8,7 +8,7 @@
 #include <stdexcept>
 
 #include "bindings.h"
-#include "kernels/mlx3d_kernels.h"
+#include "kernel_call.h"
 
 namespace nb = nanobind;
 using namespace nb::literals;
@@ -33,7 +33,7 @@ void affine_covariances(const Lin& linear, const Quats& quats, const Scales& log
     nb::gil_scoped_release release;
     rc = mlx3d_affine_covariances(linear.data(), quats.data(), log_scales.data(), n, num_threads, quats_out.data(), log_scales_out.data());
   }
-  if (rc != 0) throw std::runtime_error(mlx3d_last_error());
+  check_call(rc);
 }
 
 }  // namespace

@@ -7,7 +7,7 @@
 #include <string>
 #include <vector>
 
-#include "kernels/mlx3d_kernels.h"
+#include "kernel_call.h"
 #include "kernels/parallel.h"
 #include "mlx/allocator.h"
 #include "mlx/array.h"
@@ -70,12 +70,6 @@ class CpuPrimitive : public mlx::core::Primitive {
  private:
   const char* gpu_hint_;
 };
-
-// A kernel library call's result (kernels/mlx3d_kernels.h: 0, or 1 with the message in mlx3d_last_error)
-// as an exception, for the primitives that run the library's kernels.
-inline void check_call(int rc) {
-  if (rc != 0) throw std::runtime_error(mlx3d_last_error());
-}
 
 // "(2, 3)" for a 2x3 array, "(5,)" for a vector.
 inline std::string shape_str(const mlx::core::array& a) {

@@ -8,7 +8,7 @@
 #include <stdexcept>
 
 #include "bindings.h"
-#include "kernels/mlx3d_kernels.h"
+#include "kernel_call.h"
 
 namespace nb = nanobind;
 using namespace nb::literals;
@@ -33,7 +33,7 @@ void add_screen_statistics(const In<bool>& visible, const In<float>& grad2d, con
     rc = mlx3d_add_screen_statistics(reinterpret_cast<const uint8_t*>(visible.data()), grad2d.data(), radii.data(), n, sx, sy,
                                      grad_accum.data(), grad_count.data(), max_radii.data(), num_threads);
   }
-  if (rc != 0) throw std::runtime_error(mlx3d_last_error());
+  check_call(rc);
 }
 
 }  // namespace

@@ -38,7 +38,7 @@ import numpy as np
 __all__ = ["available", "failure", "library", "library_path", "build_info", "register", "ABI", "PATH_ENV"]
 
 #: mlx3d_kernels.h's MLX3D_KERNELS_ABI this module is written for.
-ABI = 1
+ABI = 2
 #: Environment variable: the library file to load instead of mlx3d/_kernels/'s.
 PATH_ENV = "MLX3D_KERNELS"
 LIBRARY_NAMES = {"win32": "mlx3d_kernels.dll", "darwin": "libmlx3d_kernels.dylib"}
@@ -171,9 +171,11 @@ def _ptr(a: np.ndarray | None):
 
 
 def _call(name: str, *args) -> None:
+    """Call the library's function ``name``; its failure as ValueError (an invalid argument) or RuntimeError."""
     lib = library()
-    if getattr(lib, name)(*args) != 0:
-        raise RuntimeError(lib.mlx3d_last_error().decode())
+    rc = getattr(lib, name)(*args)
+    if rc != 0:
+        raise (ValueError if rc == 2 else RuntimeError)(lib.mlx3d_last_error().decode())
 
 
 def _reverse_mode_only(fn, name: str):

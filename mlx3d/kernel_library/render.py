@@ -120,13 +120,31 @@ def rasterize_forward_surface(means2d, conics, features, opacities, tile_offsets
     width, height, tile_size, threads = int(width), int(height), int(tile_size), _threads(num_threads)
     n, c = means2d.shape[0], features.shape[-1]
     hw = f"({height}, {width}"
-    surface = (_host(depths, "rasterize: depths", (n,)),
-               _host(surface_color, f"rasterize: surface_color (H, W, C) = {hw}, {c})", (height, width, c)),
-               _host(surface_alpha, f"rasterize: surface_alpha (H, W) = {hw})", (height, width)),
-               _host(surface_depth, f"rasterize: surface_depth (H, W) = {hw})", (height, width)))
-    inputs = (means2d, conics, features, opacities, tile_offsets, flatten_ids)
-    return _forward("mlx3d_rasterize_forward_surface", inputs, tuple(_ptr(a) for a in surface), width, height, tile_size,
-                    threads)
+    for a, name, shape in ((depths, "depths", (n,)), (surface_color, f"surface_color (H, W, C) = {hw}, {c})", (height, width, c)),
+                           (surface_alpha, f"surface_alpha (H, W) = {hw})", (height, width)),
+                           (surface_depth, f"surface_depth (H, W) = {hw})", (height, width))):
+        _host(a, "rasterize: " + name, shape)  # checked here, read in the custom function
+    surface = (depths, surface_color, surface_alpha, surface_depth)
+    return _surface_rasterizer(width, height, tile_size, threads)(means2d, conics, features, opacities, tile_offsets, flatten_ids,
+                                                                 *surface)
+
+
+@functools.lru_cache(maxsize=None)
+def _surface_rasterizer(width: int, height: int, tile_size: int, threads: int):
+    """The surface variant for these sizes, whose gradients raise (as _core's)."""
+
+    @mx.custom_function
+    def rasterize(*inputs):
+        surface = tuple(_host(a, "rasterize: a surface input", tuple(a.shape)) for a in inputs[6:])
+        return _forward("mlx3d_rasterize_forward_surface", inputs[:6], tuple(_ptr(a) for a in surface), width, height, tile_size,
+                        threads)
+
+    @rasterize.vjp
+    def rasterize_vjp(primals, cotangents, outputs):
+        raise RuntimeError("rasterize_forward_surface: compositing over a surface is forward-only (no gradients); render "
+                           "without `surface` to differentiate.")
+
+    return _reverse_mode_only(rasterize, "rasterize_forward_surface")
 
 
 # ------------------------------------------------------------------ EWA projection
@@ -238,10 +256,11 @@ def bin_tiles(means2d, radii, depths, width: int, height: int, tile_size: int = 
     offsets = np.empty(-(-width // tile_size) * -(-height // tile_size) + 1, np.int32)
     ids, m = _i32p(), _i64()
     lib = library()
-    if lib.mlx3d_bin_tiles(_ptr(means), _ptr(r), _ptr(d), n, width, height, tile_size, _ptr(c), _ptr(o), _threads(num_threads),
-                           _ptr(offsets), ctypes.byref(ids), ctypes.byref(m)) != 0:
+    rc = lib.mlx3d_bin_tiles(_ptr(means), _ptr(r), _ptr(d), n, width, height, tile_size, _ptr(c), _ptr(o), _threads(num_threads),
+                             _ptr(offsets), ctypes.byref(ids), ctypes.byref(m))
+    if rc != 0:  # as _core: more entries than int32 indices reach is an OverflowError
         message = lib.mlx3d_last_error().decode()
-        raise (OverflowError if "2^31" in message else RuntimeError)(message)
+        raise (ValueError if rc == 2 else OverflowError if "2^31" in message else RuntimeError)(message)
     try:
         entries = mx.array(np.ctypeslib.as_array(ids, (m.value,))) if m.value else mx.array(np.zeros(0, np.int32))
         mx.eval(entries)  # a copy: the block is the library's

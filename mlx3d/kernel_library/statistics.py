@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import _call, _f32p, _f64, _f64p, _i32p, _i64, _int, _numpy_in, _ptr, _threads, _u8p, register
+from . import _call, _contiguous, _f32p, _f64, _f64p, _i32p, _i64, _int, _ptr, _threads, _u8p, register
 
 register({"mlx3d_add_screen_statistics": ([_u8p, _f32p, _i32p, _i64, _f64, _f64, _f64p, _f64p, _f64p, _int], _int)})
 
@@ -23,6 +23,8 @@ def add_screen_statistics(visible, grad2d, radii, sx: float, sy: float, grad_acc
             raise ValueError(f"{name} must be a writable C-contiguous float64 (N,) numpy array, as the other statistics "
                              f"(N = {n}), got {got}")
     threads = _threads(num_threads)
-    vis, g, r = (_numpy_in(visible, np.bool_, "visible", n), _numpy_in(grad2d, np.float32, "grad2d", 2 * n),
-                 _numpy_in(radii, np.int32, "radii", n))
+    vis, g, r = _contiguous(visible, np.bool_), _contiguous(grad2d, np.float32), _contiguous(radii, np.int32)
+    if (vis.size, g.size, r.size) != (n, 2 * n, n):
+        raise ValueError(f"add_screen_statistics: visible (N,), grad2d (N,2), radii (N,) and the three (N,) statistics must "
+                         f"agree on N = {n}, got {vis.size}, {g.shape} and {r.size}")
     _call("mlx3d_add_screen_statistics", _ptr(vis), _ptr(g), _ptr(r), n, float(sx), float(sy), *(_ptr(a) for a in stats), threads)

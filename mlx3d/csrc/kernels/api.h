@@ -10,13 +10,17 @@ namespace mlx3d {
 
 void set_last_error(const std::string& message);
 
-// Runs body(); 0 when it returned, 1 (with "name: what went wrong" as the last error) when it threw.
+// Runs body(); 0 when it returned, 2 when an argument was invalid (std::invalid_argument, as require throws) and
+// 1 when it failed otherwise, with "name: what went wrong" as the last error.
 template <class Body>
 int guarded(const char* name, Body&& body) noexcept {
   try {
     body();
     set_last_error("");
     return 0;
+  } catch (const std::invalid_argument& e) {
+    set_last_error(std::string(name) + ": " + e.what());
+    return 2;
   } catch (const std::exception& e) {
     set_last_error(std::string(name) + ": " + e.what());
   } catch (...) {

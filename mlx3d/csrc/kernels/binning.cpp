@@ -16,6 +16,7 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#include <stdexcept>
 #include <string>
 #include <vector>
 
@@ -220,7 +221,7 @@ int32_t* bin(const float* m, const ExtentInputs& ext, const float* d, int64_t n,
       total += here;
     }
   }
-  require(total <= INT32_MAX, "more than 2^31 tile intersections");
+  if (total > INT32_MAX) throw std::overflow_error("more than 2^31 tile intersections");
   offsets[num_tiles] = static_cast<int32_t>(total);
   HugePageArray<int32_t> ids(total);  // not zeroed: every entry is written below, by the threads; each
                                       // Gaussian writes to one bucket per tile: huge pages spare the TLB

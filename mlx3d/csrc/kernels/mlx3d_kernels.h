@@ -8,8 +8,8 @@
  *   - outputs are written in full (no need to clear them first) and never alias an input, except arrays the
  *     comment says are updated in place;
  *   - threads: worker threads to use, 0 for every hardware thread; results do not depend on it;
- *   - the return value is 0 on success; otherwise the message is in mlx3d_last_error() (this thread's last
- *     failure), and the outputs hold nothing of value.
+ *   - the return value is 0 on success, 2 when an argument is invalid and 1 on any other failure; the message is
+ *     then in mlx3d_last_error() (this thread's last failure), and the outputs hold nothing of value.
  * MLX3D_KERNELS_ABI changes whenever a signature or a meaning here does; mlx3d_kernels_abi() returns the
  * value the library was built with, so a loader refuses a library of another version.
  */
@@ -18,7 +18,7 @@
 
 #include <stdint.h>
 
-#define MLX3D_KERNELS_ABI 1
+#define MLX3D_KERNELS_ABI 2
 
 #if defined(_WIN32)
 #define MLX3D_API __declspec(dllexport)
