@@ -1,11 +1,15 @@
-"""What the compiled module buys: the pure MLX path (no ``mlx3d._core``) against the C++ kernels, same machine, same run.
+"""What the compiled kernels buy, and what reaching them through the kernel library costs: ``mlx3d._core``, the
+kernel library through ctypes and the pure MLX path, same machine, same run.
 
     python bench/pure_path.py [--demo demo_out/dataset] [--steps 300] [--markdown PATH]
 
 Each mode runs in a fresh process: ``core`` (the default backend 'cpu', the
-C++ kernels) and ``pure`` (``MLX3D_NO_CORE=1``: the backend 'mlx', MLX
-operations only, as on Windows or wherever the compiled module is missing).
-Cases:
+C++ kernels as MLX primitives of ``mlx3d._core``), ``library``
+(``MLX3D_CPU_KERNELS=library``: the same kernels, the backend 'cpu', through
+``mlx3d.kernel_library``, as where ``_core`` is missing: Windows, Linux arm64,
+macOS' CPU path; the library built for this machine into
+build/kernels/linux-x64/) and ``pure`` (``MLX3D_NO_CORE=1``: the backend 'mlx',
+MLX operations only, as where neither loads). Cases:
 
 - garden 138,766: the real SfM points of ``shared/data/test_garden.npz`` as
   Gaussians (``bench/train_scale.py``'s set-up, SH degree 3, 648x420): the
@@ -17,7 +21,7 @@ Cases:
   them (steps/s), the held-out PSNR mean and worst view, and the median time
   of a held-out render.
 
-The table gives both modes side by side and their ratio (pure / core) within
+The table gives the modes side by side and their ratios to ``core`` within
 one run of this script, on the machine and load it prints.
 """
 
@@ -33,7 +37,8 @@ import time
 from common import LoadSampler, emit, machine_line, median_ms, peak_rss_mb  # bench/ is on sys.path when run as a script
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-MODES = ("core", "pure")
+MODES = ("core", "library", "pure")
+LIBRARY = os.path.join(HERE, "..", "build", "kernels", "linux-x64")
 
 
 def _garden(repeats: int) -> dict:
@@ -75,21 +80,29 @@ def _demo(path: str, steps: int, repeats: int) -> dict:
 
 
 def child(args) -> None:
+    from mlx3d import native
     from mlx3d.render import resolve_backend
 
+    kernels = native.core().__name__ if native.available() else "none"
+    if kernels != {"core": "mlx3d._core", "library": "mlx3d.kernel_library", "pure": "none"}[args.child]:
+        sys.exit(f"mode {args.child} runs the kernels of {kernels}")
     rows = [_garden(args.repeats)]
     if args.demo and os.path.isdir(args.demo):
         rows.append(_demo(args.demo, args.steps, args.repeats))
     for row in rows:
-        row.update(mode=args.child, backend=resolve_backend("auto"), peak_mb=peak_rss_mb())
+        row.update(mode=args.child, backend=resolve_backend("auto"), kernels=kernels, peak_mb=peak_rss_mb())
         print(json.dumps(row), flush=True)
 
 
 def _run(mode: str, args) -> list:
     env = dict(os.environ)
     env.pop("MLX3D_NO_CORE", None)
+    env.pop("MLX3D_CPU_KERNELS", None)
     if mode == "pure":
         env["MLX3D_NO_CORE"] = "1"
+    if mode == "library":
+        env["MLX3D_CPU_KERNELS"] = "library"
+        env["MLX3D_KERNELS"] = os.path.join(LIBRARY, "libmlx3d_kernels.so")
     cmd = [sys.executable, os.path.abspath(__file__), "--child", mode, "--steps", str(args.steps), "--repeats", str(args.repeats),
            "--demo", args.demo or ""]
     print(f"[{mode}] {' '.join(cmd)}", file=sys.stderr, flush=True)
@@ -104,20 +117,29 @@ def _cell(row: dict | None, key: str, fmt: str) -> str:
 
 
 def table(results: dict, note: str) -> str:
-    lines = [f"Pure MLX path (`MLX3D_NO_CORE=1`, backend 'mlx') against the C++ kernels (backend 'cpu'); {note}", "",
-             "| case | measure | C++ kernels | pure MLX | pure MLX costs |", "| --- | --- | ---: | ---: | ---: |"]
+    lines = [f"The C++ kernels inside `mlx3d._core` (backend 'cpu'), the same kernels through the kernel library "
+             f"(`MLX3D_CPU_KERNELS=library`, ctypes) and the pure MLX path (`MLX3D_NO_CORE=1`, backend 'mlx'); {note}", "",
+             "| case | measure | `_core` | kernel library | pure MLX | library / `_core` | pure / `_core` |",
+             "| --- | --- | ---: | ---: | ---: | ---: | ---: |"]
     for core in results["core"]:
-        pure = next((r for r in results["pure"] if r["case"] == core["case"]), None)
+        other = {mode: next((r for r in results[mode] if r["case"] == core["case"]), None) for mode in ("library", "pure")}
         for key, name, fmt in (("render_ms", "render (ms)", ".0f"), ("step_ms", "training step (ms)", ".0f"),
                                ("steps_per_s", "steps/s", ".2f"), ("psnr", "held-out PSNR mean (dB)", ".2f"),
                                ("psnr_worst", "held-out PSNR worst view (dB)", ".2f")):
             if key not in core:
                 continue
-            cost = "-"
-            if pure is not None and key in pure:
-                cost = {"render_ms": f"{pure[key] / core[key]:.0f}x the time", "step_ms": f"{pure[key] / core[key]:.0f}x the time",
-                        "steps_per_s": f"1/{core[key] / pure[key]:.0f} the rate"}.get(key, f"{pure[key] - core[key]:+.2f} dB")
-            lines.append(f"| {core['case']} | {name} | {_cell(core, key, fmt)} | {_cell(pure, key, fmt)} | {cost} |")
+            costs = []
+            for row in other.values():
+                if row is None or key not in row:
+                    costs.append("-")
+                elif key in ("render_ms", "step_ms"):
+                    costs.append(f"{row[key] / core[key]:.2f}x the time")
+                elif key == "steps_per_s":
+                    costs.append(f"{row[key] / core[key]:.2f}x the rate")
+                else:
+                    costs.append(f"{row[key] - core[key]:+.2f} dB")
+            lines.append(f"| {core['case']} | {name} | {_cell(core, key, fmt)} | {_cell(other['library'], key, fmt)} | "
+                         f"{_cell(other['pure'], key, fmt)} | {costs[0]} | {costs[1]} |")
     peaks = ", ".join(f"{mode} {rows[0]['peak_mb']:.0f} MB" for mode, rows in results.items() if rows)
     return "\n".join(lines) + f"\n\nPeak resident memory of each process (all its cases): {peaks}."
 
@@ -135,6 +157,8 @@ def main() -> None:
     args.demo = os.path.abspath(args.demo) if args.demo else ""
     if args.demo and not os.path.isdir(args.demo):
         print(f"note: no demo dataset at {args.demo} (run `make demo` first); the demo rows are left out", file=sys.stderr)
+    subprocess.run([sys.executable, os.path.join(HERE, "..", "mlx3d", "csrc", "kernels", "build.py"), "linux-x64", "--out", LIBRARY],
+                   check=True, stdout=subprocess.DEVNULL)
     sampler = LoadSampler()
     sampler.start()
     results = {mode: _run(mode, args) for mode in MODES}
