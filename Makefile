@@ -54,11 +54,14 @@ BUILD_DIR ?= build/$(if $(filter .venv,$(VENV)),,$(VENV:.%=%)/){wheel_tag}
 #   test-kernel-platforms .venv      the kernel library (mlx3d/csrc/kernels) built for linux-x64, windows-x64,
 #                    linux-arm64 and macos-arm64 (zig), the Windows DLL run under wine and the arm64 library under
 #                    qemu-user against the Linux build, the macOS one inspected: tests/test_kernel_platforms.py
+#   test-library    .venv            the kernels' tests with the kernel library through ctypes in place of
+#                    mlx3d._core (MLX3D_CPU_KERNELS=library), as Windows, Linux arm64 and macOS' CPU path run
+#                    them: LIBRARY_TESTS
 #   test-docs       .venv            the documentation site built strictly (`make docs`); the pages'
 #                    examples run in the suites above (tests/test_docs.py)
 # Each entry prints its wall time. PYTEST_ARGS adds pytest options (e.g. -x, -k).
 TEST_MATRIX := test-py311 test-py313 test-blender45 test-blender53 test-pip-editable test-pure test-mac-path test-clang test-macos-compile \
-	test-kernel-platforms test-docs
+	test-kernel-platforms test-library test-docs
 BPY_LTS := 4.5.15
 BPY_LATEST := 5.3.0
 PYTEST_ARGS ?=
@@ -129,6 +132,15 @@ test-pure: $(STAMP)
 
 test-mac-path: $(STAMP)
 	MLX3D_NO_CORE=1 $(PY) -m pytest -q $(PYTEST_ARGS) tests/test_mac_path.py tests/test_rasterize_metal.py
+
+# Every kernel, forward and backward, and a training step through the library (the kernels' own modules,
+# the trainer's, the frozen runs and the densification statistics).
+LIBRARY_TESTS := tests/test_rasterize_cpu.py tests/test_projection_kernel.py tests/test_render_binning.py tests/test_sh_color.py \
+	tests/test_photometric_kernel.py tests/test_activation.py tests/test_transforms.py tests/test_neighbors.py \
+	tests/test_surface_composite.py tests/test_trainer.py tests/test_train_batches.py
+test-library: $(STAMP) kernels
+	MLX3D_CPU_KERNELS=library $(PY) -c "from mlx3d import native; print('CPU kernels from', native.core().__name__)"
+	MLX3D_CPU_KERNELS=library $(PY) -m pytest -q $(PYTEST_ARGS) $(LIBRARY_TESTS)
 
 # The compiled module built with clang (CLANGXX=... for another clang++) in its own venv and build
 # directory (no bpy: the kernel tests do not need Blender). Clang takes the kernels' vector lanes as

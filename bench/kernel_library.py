@@ -1,6 +1,6 @@
 """The kernel library called through ctypes against the same kernels inside mlx3d._core and the pure MLX path.
 
-    python bench/kernel_library.py [--gaussians 138766] [--repeats 40] [--markdown PATH]
+    python bench/kernel_library.py [--gaussians 138766] [--repeats 40] [--step-repeats 5] [--markdown PATH]
 
 ``mlx3d.kernel_library`` (the C library, ``mlx3d/csrc/kernels``, loaded with
 ctypes: what Windows and Linux arm64 can run) and ``mlx3d._core`` (an MLX
@@ -15,6 +15,13 @@ on one thread and on every core. The library is built for this machine into
 build/kernels/linux-x64/ (``build.py``) unless ``MLX3D_KERNELS`` names one.
 Median milliseconds of ``--repeats`` runs after a warm-up, and the ratios to
 ``_core``, within one run of this script on the machine and load it prints.
+
+Then the whole: a render and a training step at garden size in three fresh
+processes (``bench/pure_path.py``'s garden case: ``_core``, the library with
+``MLX3D_CPU_KERNELS=library``, and the pure path), ``--step-repeats`` each.
+The page's hand-written part between ``<!-- notes:meaning -->`` and
+``<!-- /notes:meaning -->`` (what the numbers mean for each platform's zip) is
+kept when it is written again.
 """
 
 from __future__ import annotations
@@ -25,7 +32,8 @@ import os
 import subprocess
 import sys
 
-from common import LoadSampler, emit, machine_line, median_ms  # bench/ is on sys.path when run as a script
+import pure_path  # bench/ is on sys.path when run as a script
+from common import LoadSampler, emit, machine_line, median_ms, page_notes
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
@@ -101,6 +109,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--gaussians", type=int, default=138766, help="Gaussians (default 138,766: the garden's)")
     parser.add_argument("--repeats", type=int, default=40)
+    parser.add_argument("--step-repeats", type=int, default=5, help="repeats of the render and the training step")
     parser.add_argument("--markdown", default=None)
     args = parser.parse_args()
     os.environ["MLX3D_KERNELS"] = _library()
@@ -111,6 +120,8 @@ def main() -> int:
     load = LoadSampler()
     load.start()
     rows = measure(args.gaussians, args.repeats)
+    step_args = argparse.Namespace(steps=0, repeats=args.step_repeats, demo="")
+    steps = {mode: pure_path._run(mode, step_args) for mode in pure_path.MODES}
     load.stop.set()
     load.join()
     summary = load.summary()
@@ -123,7 +134,13 @@ def main() -> int:
         "and filled with zeros first (MLX's Python API has no uninitialised allocation).", "",
         f"Measured {datetime.date.today().isoformat()} on {machine_line()}; library {kernel_library.build_info()}; "
         f"1-minute load average during the run: median {summary.get('median', float('nan')):.1f} on {os.cpu_count()} cores.", "",
-        table(rows, args.gaussians), ""])
+        table(rows, args.gaussians), "",
+        "## A render and a training step", "",
+        f"The garden's {138766:,} Gaussians at 648x420, SH degree 3, in a fresh process per mode (`bench/pure_path.py`'s "
+        f"garden case, median of {args.step_repeats}); the library built as above.", "",
+        pure_path.table(steps, machine_line()), "",
+        "## What it means for each zip", "",
+        "<!-- notes:meaning -->", page_notes(args.markdown or "", ("meaning",))["meaning"], "<!-- /notes:meaning -->", ""])
     emit(text, args.markdown)
     return 0
 
