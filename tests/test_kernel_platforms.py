@@ -151,25 +151,32 @@ def knn_calls():
 RASTER_SIZE = (72, 52, 16)  # width, height, tile: tiles cut by the image's edges
 
 
-def raster_inputs(backend: str = "cpu"):
-    """The real splat file projected and binned for a small camera beside it (``backend``'s projection and
-    binning): (means2d, conics, features (N, 3), opacities, tile_offsets, flatten_ids, depths) as numpy."""
-    import mlx.core as mx
-
+def splat_scene():
+    """The real splat file's arrays and a small camera beside it (RASTER_SIZE)."""
     from mlx3d.cameras import Camera
     from mlx3d.io import read_splats
-    from mlx3d.render.pipeline import _project_and_bin
 
     arrays = read_splats(SPLATS)
     means = np.asarray(arrays.means, np.float32)
-    width, height, tile = RASTER_SIZE
+    width, height, _ = RASTER_SIZE
     centre, size = means.mean(axis=0), float(np.ptp(means, axis=0).max())
     camera = Camera.look_at(eye=tuple(centre + np.array([0.3, -1.2, 0.5]) * size), at=tuple(centre), up=(0, 0, 1), fov=60,
                             width=width, height=height)
+    return arrays, camera
+
+
+def raster_inputs(backend: str = "cpu"):
+    """The real splat file projected and binned for the small camera (``backend``'s projection and binning):
+    (means2d, conics, features (N, 3), opacities, tile_offsets, flatten_ids, depths) as numpy."""
+    import mlx.core as mx
+
+    from mlx3d.render.pipeline import _project_and_bin
+
+    arrays, camera = splat_scene()
+    means, quats, scales, _ = projection_inputs()
     opacities = mx.sigmoid(mx.array(np.asarray(arrays.opacities, np.float32).reshape(-1)))
-    proj, opac, bins = _project_and_bin(camera, mx.array(means), mx.array(np.asarray(arrays.quats, np.float32)),
-                                        mx.exp(mx.array(np.asarray(arrays.scales, np.float32))), opacities, "ewa", False, 0.3,
-                                        tile, backend)
+    proj, opac, bins = _project_and_bin(camera, mx.array(means), mx.array(quats), mx.array(scales), opacities, "ewa", False, 0.3,
+                                        RASTER_SIZE[2], backend)
     features = np.clip(0.5 + 0.28209479 * np.asarray(arrays.sh_dc, np.float32).reshape(-1, 3), 0, 1).astype(np.float32)
     return tuple(np.array(a) for a in (proj.means2d, proj.conics)) + (features, np.array(opac), np.array(bins.tile_offsets),
                                                                       np.array(bins.flatten_ids), np.array(proj.depths))
@@ -201,19 +208,14 @@ def raster_calls():
                                                           ("f", np.zeros(0, np.float32)), ("i", threads), ("o", n * 2), ("o", n * 3),
                                                           ("o", n * 3), ("o", n)]))
     return calls
+
+
 # ---- projection and tile binning calls ----
 def projection_inputs():
-    """The real splat file's means, quats and scales (float32) and a camera beside it: (means, quats, scales, camera)."""
-    from mlx3d.cameras import Camera
-    from mlx3d.io import read_splats
-
-    arrays = read_splats(SPLATS)
-    means = np.ascontiguousarray(arrays.means, np.float32)
-    width, height, _ = RASTER_SIZE
-    centre, size = means.mean(axis=0), float(np.ptp(means, axis=0).max())
-    camera = Camera.look_at(eye=tuple(centre + np.array([0.3, -1.2, 0.5]) * size), at=tuple(centre), up=(0, 0, 1), fov=60,
-                            width=width, height=height)
-    return (means, np.ascontiguousarray(arrays.quats, np.float32), np.exp(np.asarray(arrays.scales, np.float32)), camera)
+    """The real splat file's means, quats and scales (float32) and the small camera: (means, quats, scales, camera)."""
+    arrays, camera = splat_scene()
+    return (np.ascontiguousarray(arrays.means, np.float32), np.ascontiguousarray(arrays.quats, np.float32),
+            np.exp(np.asarray(arrays.scales, np.float32)), camera)
 
 
 def camera_args(camera, blur: float = 0.3, antialias: bool = True) -> list:
@@ -258,6 +260,8 @@ def projection_calls():
             calls.append(("mlx3d_project_ewa_backward", head + [("f", c) for c in cot] + [("i", threads), ("o", n * 3), ("o", n * 4),
                                                                                           ("o", n * 3)]))
     return calls
+
+
 # ---- photometric loss calls ----
 _PHOTOMETRIC_CASES: list = []
 
