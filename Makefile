@@ -43,8 +43,9 @@ BUILD_DIR ?= build/$(if $(filter .venv,$(VENV)),,$(VENV:.%=%)/){wheel_tag}
 #   test-blender53  .venv-blender53  Python 3.13, bpy 5.3.0 (numpy 2.x): tests/blender, incl. Blender's own 3DGS import
 #   test-pip-editable  (temporary)   Python 3.11: a contributor's plain `pip install -e .` (build isolation)
 #                    imports the compiled module and runs `python -m mlx3d`
-#   test-pure       .venv            Python 3.11: the whole suite with mlx3d._core turned off (MLX3D_NO_CORE=1),
-#                    as where it is missing (Windows, macOS, Linux arm64); the tests of _core itself skip
+#   test-pure       .venv            Python 3.11: the suite with the compiled kernels turned off (MLX3D_NO_CORE=1),
+#                    as where neither _core nor the kernel library loads; the tests of the kernels themselves, of
+#                    what runs no kernel and of what is built above the kernels (command line, docs) skip
 #   test-mac-path   .venv            Python 3.11: the Apple-GPU path (Metal backend forced, the Metal kernels'
 #                    sources compiled as C++, _core off): tests/test_mac_path.py, tests/test_rasterize_metal.py
 #   test-clang      .venv-clang      Python 3.11: the compiled module built with clang (clang++ on PATH),

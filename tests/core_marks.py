@@ -11,6 +11,9 @@ version, so they run once among the whole-suite entries: ``make test-py313`` set
 extension zips, built for every Python from any), which the second whole-suite entry skips as well.
 ``runs_no_kernel``: the mark of test modules whose subject runs no kernel of ours (solving cameras with
 pycolmap, say): the pure path changes nothing there, so ``make test-pure`` skips them to keep CI's time.
+``above_kernels``: the mark of test modules about what is built on top of the render and training entry points
+(the command line, the documentation's examples): the pure path runs the same code there, above its own
+kernels, which their own modules test, so ``make test-pure`` skips them to keep CI's time.
 ``FAST``: the backend a test uses for "the fast renderer": 'cpu' (the C++ kernels), or 'mlx' where
 the compiled module is not available."""
 
@@ -33,4 +36,6 @@ long_training = pytest.mark.skipif(
 once_per_suite = pytest.mark.skipif(SECOND_SUITE, reason="does not depend on the Python or numpy running it: runs once "
                                     "among the whole-suite entries (MLX3D_SECOND_SUITE=1 here)")
 runs_no_kernel = pytest.mark.skipif(not native.available(), reason="runs no kernel of ours: the pure MLX path changes nothing here")
+above_kernels = pytest.mark.skipif(not native.available(), reason="built on the render and training entry points: the pure MLX "
+                                   "path runs the same code here, above its kernels, which their own modules test")
 FAST = "cpu" if native.available() else "mlx"

@@ -14,6 +14,9 @@ from mlx3d.cameras import Camera
 from mlx3d.cli import main
 from mlx3d.splatting import GaussianModel, eval_sh
 from mlx3d.transforms import euler_to_matrix
+from core_marks import above_kernels
+
+pytestmark = above_kernels
 
 DATA = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data")
 OPENSPLAT = os.path.join(DATA, "opensplat_trained.ply")

@@ -17,6 +17,9 @@ import shlex
 from pathlib import Path
 
 import pytest
+from core_marks import above_kernels
+
+pytestmark = above_kernels
 
 ROOT = Path(__file__).resolve().parent.parent
 PAGES = sorted([ROOT / "README.md", ROOT / "CONTRIBUTING.md"] + [p for p in (ROOT / "docs").rglob("*.md") if "hooks" not in p.parts])

@@ -9,6 +9,9 @@ from plyfile import PlyData, PlyElement
 from mlx3d.cli import main
 from mlx3d.io import read_splat_ply
 from test_trainer import small_problem
+from core_marks import above_kernels
+
+pytestmark = above_kernels
 
 
 @pytest.fixture
