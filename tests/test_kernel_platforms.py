@@ -502,10 +502,15 @@ def read_results(path: Path, calls) -> list:
     return results
 
 
-def run_driver(folder: Path, platform: str, runner: list[str], calls, tmp_path: Path) -> list:
+def run_driver(folder: Path, platform: str, runner: list[str], calls, tmp_path: Path, baseline: bool = True) -> list:
+    """The driver's results of ``calls`` with ``platform``'s build; ``baseline``: the rasterizer at the lane width every
+    build has (4), else at the widest its CPU check picks."""
     calls_file, out_file = tmp_path / f"calls_{platform}.bin", tmp_path / f"out_{platform}.bin"
     write_calls(calls_file, calls)
-    env = dict(os.environ, MLX3D_RASTER_ISA="baseline")  # the rasterizer's gradients at the lane width every build has (4)
+    env = dict(os.environ)
+    env.pop("MLX3D_RASTER_ISA", None)
+    if baseline:
+        env["MLX3D_RASTER_ISA"] = "baseline"
     if platform == "windows-x64":
         env.update(WINEPREFIX=str(OUT / "wineprefix"), WINEDEBUG="-all", WINEDLLOVERRIDES="mscoree,mshtml=")
     # run from the library's folder with bare names: every platform's loader finds them there
@@ -1145,6 +1150,22 @@ def test_optim_driver_calls_are_numpys_mlxs_and_the_in_process_librarys(builds, 
     (rc0, error0, _), (rc1, error1, _) = results[-2:]
     assert rc0 == 2 and error0 == "mlx3d_adam_moment: squared must be 0 (first moment) or 1 (second moment), got 2"
     assert rc1 == 2 and error1.startswith("mlx3d_adam_param: the bias corrections c1, c2 must be > 0")
+
+
+def test_windows_build_picks_avx2_where_the_cpu_has_it(builds, tmp_path, monkeypatch):
+    """The Windows DLL (clang, zig) checks the CPU itself and runs the rasterizer's 8-lane AVX2 variant where it can,
+    with the Linux build's bits at that width, forward and backward."""
+    runner = wine_command()
+    if runner is None:
+        pytest.skip("wine not installed (`make test-kernel-platforms` installs it)")
+    use_library(monkeypatch, builds("linux-x64") / kernel_build.library_name("linux-x64"))  # for the calls' inputs
+    calls = [("mlx3d_rasterizer_lanes", [])] + raster_calls()
+    reference = run_driver(builds("linux-x64"), "linux-x64", [], calls, tmp_path, baseline=False)
+    if reference[0][0] != 8:
+        pytest.skip("this CPU has no AVX2")
+    got = run_driver(builds("windows-x64"), "windows-x64", runner, calls, tmp_path, baseline=False)
+    assert got[0][0] == 8
+    check_same(got, reference, calls)
 
 
 def test_macos_build_is_an_arm64_library_exporting_the_api(builds):

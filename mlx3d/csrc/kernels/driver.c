@@ -141,6 +141,10 @@ static int call(library_t lib, const char* name, Arg* args, uint32_t nargs) {
                               (double*)args[7].data, (double*)args[8].data, (int)I(9));
   }
   /* ---- rasterizer ---- */
+  if (!strcmp(name, "mlx3d_rasterizer_lanes")) {  /* no arguments; its value as the record's return value */
+    if (nargs != 0) fail("mlx3d_rasterizer_lanes: takes no arguments");
+    return ((int (*)(void))fn)();
+  }
   if (!strcmp(name, "mlx3d_rasterize_forward")) {  /* 'o' for last: an int32 output, compared as bytes */
     if (!kinds_are(args, nargs, "ffffnniiiiiifioooo")) fail("mlx3d_rasterize_forward: arguments of the wrong kinds");
     return ((raster_forward_t)fn)(F(0), F(1), F(2), F(3), N(4), N(5), I(6), (int)I(7), I(8), (int)I(9), (int)I(10), (int)I(11),

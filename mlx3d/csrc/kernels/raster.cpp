@@ -59,8 +59,8 @@
 
 // Lane types: the tile kernels run several pixels at once, one per lane. With
 // GCC and clang (which has GCC's vector extensions and defines __GNUC__ too)
-// they are vectors of floats / int32: 8 lanes in the AVX2 variant (x86-64
-// ELF, picked at run time), 4 otherwise (SSE2, NEON); other compilers (MSVC)
+// they are vectors of floats / int32: 8 lanes in the AVX2 variant (x86-64,
+// picked at run time), 4 otherwise (SSE2, NEON); other compilers (MSVC)
 // or -DMLX3D_RASTER_SCALAR_LANES get one pixel per lane.
 // Each lane runs exactly the scalar per-pixel recurrence, so forward results
 // do not depend on the lane width. The rm_* templates of raster_math.h are
@@ -82,10 +82,13 @@ inline __attribute__((always_inline)) LaneF8 rm_pow2i(LaneF8 n) {
   LaneI8 bits = (__builtin_convertvector(n, LaneI8) + 127) << 23;
   return (LaneF8)bits;
 }
-#if defined(__x86_64__) && defined(__ELF__)
+// The AVX2 variant: x86-64 ELF (GCC or clang), and Windows with clang (zig's builds; GCC's MinGW does not
+// keep the 32-byte stack alignment AVX locals need).
+#if defined(__x86_64__) && (defined(__ELF__) || (defined(_WIN32) && defined(__clang__)))
 #define MLX3D_RASTER_AVX2 1
 #endif
 #if defined(__x86_64__)
+#include <cpuid.h>
 #include <immintrin.h>
 #endif
 #endif
@@ -1249,12 +1252,24 @@ __attribute__((target("avx2"))) int backward_tile_avx2(const Inputs& in, const G
 }
 #endif
 
+#if defined(MLX3D_RASTER_AVX2)
+// Whether the CPU has AVX2 and the OS saves the AVX registers (CPUID and XGETBV, as compiler runtimes check it:
+// zig's has no __builtin_cpu_supports).
+bool cpu_has_avx2() {
+  unsigned a, b, c, d;
+  if (!__get_cpuid(1, &a, &b, &c, &d) || !(c & (1u << 27)) || !(c & (1u << 28))) return false;  // OSXSAVE, AVX
+  unsigned lo, hi;
+  __asm__ volatile("xgetbv" : "=a"(lo), "=d"(hi) : "c"(0));
+  if ((lo & 6u) != 6u) return false;  // the OS saves XMM and YMM state
+  if (__get_cpuid_max(0, nullptr) < 7) return false;
+  __cpuid_count(7, 0, a, b, c, d);
+  return (b & (1u << 5)) != 0;  // AVX2
+}
+#endif
+
 bool use_avx2() {
 #if defined(MLX3D_RASTER_AVX2)
-  static const bool has_avx2 = [] {
-    __builtin_cpu_init();
-    return __builtin_cpu_supports("avx2") != 0;
-  }();
+  static const bool has_avx2 = cpu_has_avx2();
   const char* isa = std::getenv("MLX3D_RASTER_ISA");
   return has_avx2 && !(isa && std::strcmp(isa, "baseline") == 0);
 #else
