@@ -867,11 +867,6 @@ def check_kernel_library(data: bytes, plat: Platform, what: str) -> str:
     return described
 
 
-def _newest_kernel_source_mtime() -> float:
-    return max((p.stat().st_mtime for p in KERNEL_SOURCES.rglob("*")
-                if p.is_file() and "__pycache__" not in p.parts), default=0.0)
-
-
 def build_kernel_library(platform_name: str, *, rebuild: bool = False) -> Path:
     """The platform's kernel library, built by build.py into ``build/extension/kernels-PLATFORM/`` (reused while
     newer than every file of mlx3d/csrc/kernels) and checked (``check_kernel_library``)."""
@@ -879,7 +874,7 @@ def build_kernel_library(platform_name: str, *, rebuild: bool = False) -> Path:
     plat = PLATFORMS[platform_name]
     out = WORK_DIR / f"kernels-{platform_name}"
     library = out / build_script.library_name(platform_name)
-    if not rebuild and library.is_file() and library.stat().st_mtime >= _newest_kernel_source_mtime():
+    if not rebuild and library.is_file() and library.stat().st_mtime >= _newest_source_mtime((KERNEL_SOURCES,)):
         log(f"  have {library.relative_to(ROOT)} (newer than {KERNEL_SOURCES.relative_to(ROOT)})")
     else:
         if build_script.TARGETS.get(platform_name) is not None:
@@ -1055,9 +1050,10 @@ def build_interpreter(pins: Pins, python: tuple[int, int]) -> str:
     return str(exe)
 
 
-def _newest_source_mtime() -> float:
+def _newest_source_mtime(inputs=SOURCE_INPUTS) -> float:
+    """The newest modification time of the files of ``inputs`` (paths under ROOT: files or folders)."""
     newest = 0.0
-    for name in SOURCE_INPUTS:
+    for name in inputs:
         path = ROOT / name
         files = [path] if path.is_file() else [
             p for p in path.rglob("*")

@@ -200,6 +200,21 @@ def _numpy_in(a, dtype, name: str, size: int) -> np.ndarray:
     return a
 
 
+def _numpy_out(a, name: str, dtype, shape: tuple) -> np.ndarray:
+    """``a``, a numpy array a kernel writes in place, checked: writable, C-contiguous, of ``dtype`` and ``shape``."""
+    if not (isinstance(a, np.ndarray) and a.dtype == dtype and a.shape == shape and a.flags.c_contiguous and a.flags.writeable):
+        got = (f"{a.dtype} {a.shape}{'' if a.flags.c_contiguous else ', strided'}{'' if a.flags.writeable else ', read-only'}"
+               if isinstance(a, np.ndarray) else type(a).__name__)
+        raise ValueError(f"{name} must be a writable C-contiguous {np.dtype(dtype).name} {shape} numpy array, got {got}")
+    return a
+
+
+def _require(ok: bool, op: str, message: str) -> None:
+    """A ValueError ``op: message`` unless ``ok`` (the wording of _core's op checks)."""
+    if not ok:
+        raise ValueError(f"{op}: {message}")
+
+
 def _threads(num_threads) -> int:
     """``num_threads`` checked: >= 0 (0 = every core)."""
     if int(num_threads) < 0:

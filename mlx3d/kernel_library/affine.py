@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import _call, _contiguous, _f32p, _f64p, _i64, _int, _ptr, _threads, register
+from . import _call, _contiguous, _f32p, _f64p, _i64, _int, _numpy_out, _ptr, _threads, register
 
 register({"mlx3d_affine_covariances": ([_f64p, _f32p, _f32p, _i64, _int, _f32p, _f32p], _int)})
 
@@ -23,7 +23,5 @@ def affine_covariances(linear, quats, log_scales, quats_out: np.ndarray, log_sca
     if s.shape != (n, 3):
         raise ValueError(f"affine_covariances: log_scales must have shape ({n}, 3) as quats, got {s.shape}")
     for name, out, width in (("quats_out", quats_out, 4), ("log_scales_out", log_scales_out, 3)):
-        if not (isinstance(out, np.ndarray) and out.dtype == np.float32 and out.shape == (n, width) and out.flags.c_contiguous
-                and out.flags.writeable):
-            raise ValueError(f"affine_covariances: {name} must be a writable C-contiguous float32 ({n}, {width}) numpy array")
+        _numpy_out(out, f"affine_covariances: {name}", np.float32, (n, width))
     _call("mlx3d_affine_covariances", _ptr(lin), _ptr(q), _ptr(s), n, _threads(num_threads), _ptr(quats_out), _ptr(log_scales_out))

@@ -17,7 +17,7 @@ import mlx.core as mx
 import numpy as np
 
 from . import (_call, _contiguous, _f32, _f32p, _host, _i32p, _i64, _int, _numpy_in, _output, _ptr,
-              _reverse_mode_only, _threads, library, register)
+              _require, _reverse_mode_only, _threads, library, register)
 
 register({
     "mlx3d_rasterize_forward": ([_f32p, _f32p, _f32p, _f32p, _i32p, _i32p, _i64, _int, _i64, _int, _int, _int, _f32p, _int,
@@ -36,8 +36,7 @@ def rasterizer_simd_lanes() -> int:
 
 
 def _check(ok: bool, message: str) -> None:
-    if not ok:
-        raise ValueError("rasterize: " + message)
+    _require(ok, "rasterize", message)
 
 
 def _gaussians(means2d, conics, features, opacities, tile_offsets, flatten_ids, width: int, height: int, tile_size: int):
@@ -156,11 +155,6 @@ register({
 })
 
 
-def _check_projection(ok: bool, message: str) -> None:
-    if not ok:
-        raise ValueError("project_ewa: " + message)
-
-
 @functools.lru_cache(maxsize=64)
 def _projector(camera: tuple, threads: int):
     """The differentiable projection for one camera: f(means, quats, scales) -> [means2d, conics, radii, depths,
@@ -201,10 +195,10 @@ def project_ewa(means, quats, scales, viewmat, fx: float, fy: float, cx: float, 
     """EWA projection (``mlx3d._core.project_ewa``'s contract; differentiable w.r.t. means, quats, scales): float32
     means (N,3), quats (N,4), scales (N,3); viewmat 16 floats (4x4 row-major). Returns [means2d (N,2), conics
     (N,3), radii (N,) int32, depths (N,), compensation (N,)]."""
-    _check_projection(means.ndim == 2 and means.shape[1] == 3, f"means must have shape (N, 3), got {tuple(means.shape)}")
+    _require(means.ndim == 2 and means.shape[1] == 3, "project_ewa", f"means must have shape (N, 3), got {tuple(means.shape)}")
     viewmat = tuple(float(v) for v in np.asarray(viewmat, np.float64).reshape(-1))
-    _check_projection(len(viewmat) == 16, "viewmat must have 16 entries (4x4 row-major)")
-    _check_projection(int(width) >= 1 and int(height) >= 1, "width and height must be >= 1")
+    _require(len(viewmat) == 16, "project_ewa", "viewmat must have 16 entries (4x4 row-major)")
+    _require(int(width) >= 1 and int(height) >= 1, "project_ewa", "width and height must be >= 1")
     camera = (viewmat, float(fx), float(fy), float(cx), float(cy), int(width), int(height), float(near), float(far), float(blur),
               int(bool(antialias)))
     return _projector(camera, _threads(num_threads))(means, quats, scales)

@@ -6,7 +6,7 @@ import functools
 
 import mlx.core as mx
 
-from . import _call, _f32p, _host, _i64, _int, _output, _ptr, _reverse_mode_only, _threads, register
+from . import _call, _f32p, _host, _i64, _int, _output, _ptr, _require, _reverse_mode_only, _threads, register
 
 register({
     "mlx3d_sh_forward": ([_f32p, _i64, _f32p, _i64, _f32p, _f32p, _i64, _int, _int, _f32p], _int),
@@ -49,21 +49,19 @@ def sh_colors(sh: list, means: mx.array, centre: mx.array, degree: int, num_thre
     """max(colour, 0) (N, 3) of float32 SH coefficients seen from ``centre`` (3,) at ``means`` (N, 3), up to
     ``degree`` (0..3); ``sh``: [(N, K, 3)] or two blocks [(N, K0, 3), (N, K1, 3)] read as their concatenation.
     Differentiable with respect to the blocks and the means (``mlx3d._core.sh_colors``'s contract)."""
-    def check(ok: bool, message: str) -> None:
-        if not ok:
-            raise ValueError("sh_colors: " + message)
-
-    check(0 <= int(degree) <= 3, f"degree must be 0..3, got {degree}")
-    check(len(sh) in (1, 2), f"sh must be one (N, K, 3) array or two blocks, got {len(sh)} arrays")
-    check(sh[0].ndim == 3 and sh[0].shape[2] == 3 and sh[0].shape[1] >= 1,
-          f"sh must have shape (N, K, 3) with K >= 1, got {tuple(sh[0].shape)}")
+    _require(0 <= int(degree) <= 3, "sh_colors", f"degree must be 0..3, got {degree}")
+    _require(len(sh) in (1, 2), "sh_colors", f"sh must be one (N, K, 3) array or two blocks, got {len(sh)} arrays")
+    _require(sh[0].ndim == 3 and sh[0].shape[2] == 3 and sh[0].shape[1] >= 1, "sh_colors",
+             f"sh must have shape (N, K, 3) with K >= 1, got {tuple(sh[0].shape)}")
     n = sh[0].shape[0]
     for b in sh:
-        check(b.ndim == 3 and b.shape[0] == n and b.shape[2] == 3, f"every sh block must have shape ({n}, K, 3), got {tuple(b.shape)}")
+        _require(b.ndim == 3 and b.shape[0] == n and b.shape[2] == 3, "sh_colors",
+                 f"every sh block must have shape ({n}, K, 3), got {tuple(b.shape)}")
     k, bases = sum(b.shape[1] for b in sh), (int(degree) + 1) ** 2
-    check(k >= bases, f"degree {degree} needs K >= {bases} coefficients, got {k}")
-    check(means.ndim == 2 and tuple(means.shape) == (n, 3), f"means must have shape (N, 3) = ({n}, 3), got {tuple(means.shape)}")
-    check(centre.ndim == 1 and centre.shape[0] == 3, f"centre must have shape (3,), got {tuple(centre.shape)}")
+    _require(k >= bases, "sh_colors", f"degree {degree} needs K >= {bases} coefficients, got {k}")
+    _require(means.ndim == 2 and tuple(means.shape) == (n, 3), "sh_colors",
+             f"means must have shape (N, 3) = ({n}, 3), got {tuple(means.shape)}")
+    _require(centre.ndim == 1 and centre.shape[0] == 3, "sh_colors", f"centre must have shape (3,), got {tuple(centre.shape)}")
     block0 = sh[0]
     block1 = sh[1] if len(sh) == 2 else mx.zeros((block0.shape[0], 0, 3), dtype=mx.float32)
     return _sh_function(int(degree), _threads(num_threads))(block0, block1, means, centre)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import _call, _contiguous, _f32p, _f64, _f64p, _i32p, _i64, _int, _ptr, _threads, _u8p, register
+from . import _call, _contiguous, _f32p, _f64, _f64p, _i32p, _i64, _int, _numpy_out, _ptr, _threads, _u8p, register
 
 register({"mlx3d_add_screen_statistics": ([_u8p, _f32p, _i32p, _i64, _f64, _f64, _f64p, _f64p, _f64p, _int], _int)})
 
@@ -17,11 +17,7 @@ def add_screen_statistics(visible, grad2d, radii, sx: float, sy: float, grad_acc
     stats = (grad_accum, grad_count, max_radii)
     n = grad_accum.shape[0] if isinstance(grad_accum, np.ndarray) else -1
     for name, a in zip(("grad_accum", "grad_count", "max_radii"), stats):
-        if not (isinstance(a, np.ndarray) and a.dtype == np.float64 and a.shape == (n,) and a.flags.c_contiguous and a.flags.writeable):
-            got = (f"{a.dtype} {a.shape}{'' if a.flags.c_contiguous else ', strided'}{'' if a.flags.writeable else ', read-only'}"
-                   if isinstance(a, np.ndarray) else type(a).__name__)
-            raise ValueError(f"{name} must be a writable C-contiguous float64 (N,) numpy array, as the other statistics "
-                             f"(N = {n}), got {got}")
+        _numpy_out(a, name, np.float64, (n,))
     threads = _threads(num_threads)
     vis, g, r = _contiguous(visible, np.bool_), _contiguous(grad2d, np.float32), _contiguous(radii, np.int32)
     if (vis.size, g.size, r.size) != (n, 2 * n, n):
