@@ -45,7 +45,8 @@ BUILD_DIR ?= build/$(if $(filter .venv,$(VENV)),,$(VENV:.%=%)/){wheel_tag}
 #                    imports the compiled module and runs `python -m mlx3d`
 #   test-pure       .venv            Python 3.11: the suite with the compiled kernels turned off (MLX3D_NO_CORE=1),
 #                    as where neither _core nor the kernel library loads; the tests of the kernels themselves, of
-#                    what runs no kernel and of what is built above the kernels (command line, docs) skip
+#                    what runs no kernel and of what is built above the kernels (command line, docs, report, the
+#                    add-on's training, photo, mesh, benchmark and demo operators) skip
 #   test-mac-path   .venv            Python 3.11: the Apple-GPU path (Metal backend forced, the Metal kernels'
 #                    sources compiled as C++, _core off): tests/test_mac_path.py, tests/test_rasterize_metal.py
 #   test-clang      .venv-clang      Python 3.11: the compiled module built with clang (clang++ on PATH),

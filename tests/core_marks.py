@@ -12,7 +12,8 @@ extension zips, built for every Python from any), which the second whole-suite e
 ``runs_no_kernel``: the mark of test modules whose subject runs no kernel of ours (solving cameras with
 pycolmap, say): the pure path changes nothing there, so ``make test-pure`` skips them to keep CI's time.
 ``above_kernels``: the mark of test modules about what is built on top of the render and training entry points
-(the command line, the documentation's examples): the pure path runs the same code there, above its own
+(the command line, the documentation's examples, the report, the add-on's training, photo, mesh, benchmark and
+demo operators): the pure path runs the same code there, above its own
 kernels, which their own modules test, so ``make test-pure`` skips them to keep CI's time.
 ``FAST``: the backend a test uses for "the fast renderer": 'cpu' (the C++ kernels), or 'mlx' where
 the compiled module is not available."""

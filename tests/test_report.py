@@ -16,6 +16,9 @@ from mlx3d.report import plot as plt
 from mlx3d.report import scene
 from mlx3d.report.accuracy import MODES, Cancelled, run_accuracy, schedule, train_cases
 from mlx3d.report.stats import best_within, budget_table, format_spread, pareto_front, summary
+from core_marks import above_kernels
+
+pytestmark = above_kernels  # the report over the trainer and renderer: the pure path runs the same code there
 
 
 # ------------------------------------------------------------------ plots

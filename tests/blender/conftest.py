@@ -49,6 +49,9 @@ import pytest
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[1]
+# tests/core_marks.py's marks serve this directory too (pytest puts only tests/blender on sys.path when it runs alone)
+if str(HERE.parent) not in sys.path:
+    sys.path.append(str(HERE.parent))
 EXTENSION_ID = "mlx3d_splat"
 REPO = "user_default"
 MODULE_NAME = f"bl_ext.{REPO}.{EXTENSION_ID}"

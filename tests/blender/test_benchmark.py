@@ -9,6 +9,9 @@ from types import SimpleNamespace
 import pytest
 from modal_state import ESC, MOVE, OperatorState, TIMER
 from panel_layout import RecordingLayout
+from core_marks import above_kernels
+
+pytestmark = above_kernels  # the add-on over mlx3d.report: the pure path runs the same code there
 
 bpy = pytest.importorskip("bpy")
 

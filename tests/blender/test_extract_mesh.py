@@ -24,12 +24,11 @@ from panel_layout import RecordingLayout
 from mlx3d.io import SplatArrays, write_splat_ply
 from mlx3d.splatting import C0
 from mlx3d.transforms import compose_affine
-from mlx3d import native
+from core_marks import above_kernels
 
-# The default 60 views of 512 x 512, each rendered 18 times for its median depth, take minutes on the pure MLX
-# path; that path's median depth is tested in tests/test_surfels.py, so these two run where the kernels do.
-default_views = pytest.mark.skipif(not native.available(), reason="60 default views on the pure MLX path take minutes; "
-                                   "its median depth is tested in tests/test_surfels.py")
+# The add-on over mlx3d.meshing: the pure path runs the same code there, and its median depth is tested in
+# tests/test_surfels.py (the default 60 views of 512 x 512 would take minutes on it).
+pytestmark = above_kernels
 
 bpy = pytest.importorskip("bpy")
 
@@ -210,7 +209,6 @@ def camera_collection(name, eyes, size=96):
 
 
 # ------------------------------------------------------------------ the operator and the function
-@default_views
 def test_operator_fuses_the_sphere_under_the_transformed_splat_object(extension, clean_scene, tmp_path):
     """What a user gets by default: depth fusion from 60 views around the splats, under a translated, rotated and
     non-uniformly scaled object (an ellipsoid in the world)."""
@@ -629,7 +627,6 @@ def test_headless_extract_mesh(extension, extension_env, tmp_path):
         assert not (tmp_path / "bad.ply").exists()
 
 
-@default_views
 def test_headless_fusion_writes_the_sphere(extension, extension_env, tmp_path):
     """--method fusion with its default views, 60 around the splats."""
     from mlx3d.io.mesh_ply import read_mesh_ply

@@ -26,6 +26,9 @@ pytest.importorskip("pycolmap", reason="solving cameras needs pycolmap (the pose
 
 from mlx3d.cameras import Camera  # noqa: E402
 from mlx3d.datasets import load_dataset  # noqa: E402
+from core_marks import above_kernels  # noqa: E402
+
+pytestmark = above_kernels  # the add-on over the camera solve and the trainer: the pure path runs the same code there
 
 COUNT = 24
 
