@@ -1,6 +1,7 @@
 """The kernel library called through ctypes against the same kernels inside mlx3d._core and the pure MLX path.
 
-    python bench/kernel_library.py [--gaussians 138766] [--repeats 40] [--step-repeats 5] [--markdown PATH]
+    python bench/kernel_library.py [--gaussians 138766] [--repeats 40] [--step-repeats 5] [--reference a5917c2]
+                                   [--markdown PATH]
 
 ``mlx3d.kernel_library`` (the C library, ``mlx3d/csrc/kernels``, loaded with
 ctypes: what Windows and Linux arm64 can run) and ``mlx3d._core`` (an MLX
@@ -19,7 +20,12 @@ Median milliseconds of ``--repeats`` runs after a warm-up, and the ratios to
 Then the whole: a render and a training step at garden size in three fresh
 processes (``bench/pure_path.py``'s garden case: ``_core``, the library with
 ``MLX3D_CPU_KERNELS=library``, and the pure path), ``--step-repeats`` each.
-The page's hand-written part between ``<!-- notes:meaning -->`` and
+Linux's own build keeps ``_core`` (MLX primitives over the library's C
+functions); ``--reference REV`` (default: the last commit before the
+library, whose ``_core`` held the kernels itself) is built here as a wheel
+(``git worktree``, ``pip wheel``; kept in build/reference/REV/) and its render
+and training step are timed the same way beside this checkout's ``_core``
+('' skips it). The page's hand-written part between ``<!-- notes:meaning -->`` and
 ``<!-- /notes:meaning -->`` (what the numbers mean for each platform's zip) is
 kept when it is written again.
 """
@@ -46,6 +52,42 @@ def _library() -> str:
     subprocess.run([sys.executable, os.path.join(ROOT, "mlx3d", "csrc", "kernels", "build.py"), "linux-x64", "--out", out],
                    check=True, stdout=subprocess.DEVNULL)
     return os.path.join(out, "libmlx3d_kernels.so")
+
+
+#: The last commit before the kernel library: its _core held the kernels itself (the "today's _core" it is held to).
+REFERENCE = "a5917c2"
+
+
+def _reference_site(rev: str) -> str:
+    """mlx3d as built at commit ``rev``: its wheel (built from a temporary git worktree) unpacked into
+    build/reference/<rev>/site, which is returned (reused when there)."""
+    import glob
+    import tempfile
+    import zipfile
+
+    site = os.path.join(ROOT, "build", "reference", rev, "site")
+    if os.path.isdir(os.path.join(site, "mlx3d")):
+        return site
+    with tempfile.TemporaryDirectory() as tmp:
+        tree = os.path.join(tmp, "tree")
+        subprocess.run(["git", "-C", ROOT, "worktree", "add", "--detach", tree, rev], check=True, stdout=subprocess.DEVNULL)
+        try:
+            subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-build-isolation", "--no-deps", "-w", tmp, tree],
+                           check=True)
+        finally:
+            subprocess.run(["git", "-C", ROOT, "worktree", "remove", "--force", tree], check=True)
+        zipfile.ZipFile(glob.glob(os.path.join(tmp, "mlx3d_splat-*.whl"))[0]).extractall(site)
+    return site
+
+
+def reference_table(reference: dict, current: dict, rev: str) -> str:
+    """The reference build's render and step against this checkout's ``_core`` (rows of ``pure_path._run``)."""
+    lines = [f"| case | measure | `_core` at {rev} | `_core` now | now / {rev} |", "| --- | --- | ---: | ---: | ---: |"]
+    for old in reference:
+        new = next(r for r in current if r["case"] == old["case"])
+        for key, name in (("render_ms", "render (ms)"), ("step_ms", "training step (ms)")):
+            lines.append(f"| {old['case']} | {name} | {old[key]:.0f} | {new[key]:.0f} | {new[key] / old[key]:.2f}x the time |")
+    return "\n".join(lines)
 
 
 def measure(n: int, repeats: int) -> list:
@@ -110,8 +152,10 @@ def main() -> int:
     parser.add_argument("--gaussians", type=int, default=138766, help="Gaussians (default 138,766: the garden's)")
     parser.add_argument("--repeats", type=int, default=40)
     parser.add_argument("--step-repeats", type=int, default=5, help="repeats of the render and the training step")
+    parser.add_argument("--reference", default=REFERENCE, help=f"a commit whose _core to time beside (default {REFERENCE}; '' skips)")
     parser.add_argument("--markdown", default=None)
     args = parser.parse_args()
+    reference_site = _reference_site(args.reference) if args.reference else None
     os.environ["MLX3D_KERNELS"] = _library()
     from mlx3d import kernel_library, native
 
@@ -122,6 +166,7 @@ def main() -> int:
     rows = measure(args.gaussians, args.repeats)
     step_args = argparse.Namespace(steps=0, repeats=args.step_repeats, demo="")
     steps = {mode: pure_path._run(mode, step_args) for mode in pure_path.MODES}
+    reference = pure_path._run("core", step_args, site=reference_site) if reference_site else None
     load.stop.set()
     load.join()
     summary = load.summary()
@@ -139,6 +184,9 @@ def main() -> int:
         f"The garden's {138766:,} Gaussians at 648x420, SH degree 3, in a fresh process per mode (`bench/pure_path.py`'s "
         f"garden case, median of {args.step_repeats}); the library built as above.", "",
         pure_path.table(steps, machine_line()), "",
+        *([f"Linux's build against the `_core` before the library (commit `{args.reference}`, whose `_core` held the kernels "
+           "itself; built as a wheel and run in a fresh process the same way):", "",
+           reference_table(reference, steps["core"], args.reference), ""] if reference else []),
         "## What it means for each zip", "",
         "<!-- notes:meaning -->", page_notes(args.markdown or "", ("meaning",))["meaning"], "<!-- /notes:meaning -->", ""])
     emit(text, args.markdown)

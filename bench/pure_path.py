@@ -89,12 +89,17 @@ def child(args) -> None:
     rows = [_garden(args.repeats)]
     if args.demo and os.path.isdir(args.demo):
         rows.append(_demo(args.demo, args.steps, args.repeats))
+    import mlx3d
+
     for row in rows:
-        row.update(mode=args.child, backend=resolve_backend("auto"), kernels=kernels, peak_mb=peak_rss_mb())
+        row.update(mode=args.child, backend=resolve_backend("auto"), kernels=kernels, peak_mb=peak_rss_mb(),
+                   mlx3d=os.path.dirname(os.path.abspath(mlx3d.__file__)))
         print(json.dumps(row), flush=True)
 
 
-def _run(mode: str, args) -> list:
+def _run(mode: str, args, site: str | None = None) -> list:
+    """The rows of a child process in ``mode``; ``site``: a directory holding another build of mlx3d (an unpacked
+    wheel), which the child imports instead of this checkout's (``python -S``, this interpreter's packages after it)."""
     env = dict(os.environ)
     env.pop("MLX3D_NO_CORE", None)
     env.pop("MLX3D_CPU_KERNELS", None)
@@ -103,8 +108,14 @@ def _run(mode: str, args) -> list:
     if mode == "library":
         env["MLX3D_CPU_KERNELS"] = "library"
         env["MLX3D_KERNELS"] = os.path.join(LIBRARY, "libmlx3d_kernels.so")
-    cmd = [sys.executable, os.path.abspath(__file__), "--child", mode, "--steps", str(args.steps), "--repeats", str(args.repeats),
-           "--demo", args.demo or ""]
+    python = [sys.executable]
+    if site:
+        import sysconfig
+
+        python.append("-S")
+        env["PYTHONPATH"] = os.pathsep.join([site, sysconfig.get_path("purelib"), sysconfig.get_path("platlib")])
+    cmd = python + [os.path.abspath(__file__), "--child", mode, "--steps", str(args.steps), "--repeats", str(args.repeats),
+                    "--demo", args.demo or ""]
     print(f"[{mode}] {' '.join(cmd)}", file=sys.stderr, flush=True)
     out = subprocess.run(cmd, env=env, capture_output=True, text=True, cwd=HERE)
     if out.returncode != 0:
