@@ -2,7 +2,7 @@
 
     python bench/mesh_objects.py [--objects suzanne,bumpy_sphere,torus_knot] [--methods vanilla,2dgs]
                                  [--extract fusion,poisson] [--steps 7000] [--size 640] [--factor 2]
-                                 [--resolution 128]
+                                 [--resolution 128] [--sparse-depth 0]
                                  [--data bench_data/mesh_objects] [--markdown docs/benchmarks/mesh_objects.md]
 
 Each object (a subdivided Suzanne, a sphere displaced by a noise texture, a
@@ -22,7 +22,8 @@ out); its cameras are solved from the photos by ``mlx3d poses``
 (``mlx3d.sfm.solve_poses``: no Blender pose and no points are handed over).
 Training starts from the sparse points of the solve (every 8th photo held
 out), black background, as ``mlx3d train DATA`` does, for ``--steps`` steps
-per method. Each model is meshed by each extraction method at
+per method (``--sparse-depth W``: with the solve's points as depth,
+``TrainerConfig.lambda_sparse_depth``, its rows and files named 'METHOD+depthW'). Each model is meshed by each extraction method at
 ``--resolution`` (fusion from the training cameras, of their median depth,
 or with ``fusion-expected`` of their expected depth; Poisson with normals
 towards them), the mesh is taken into Blender's frame by the similarity that
@@ -234,7 +235,8 @@ def _train_child(args) -> None:
     from mlx3d.training.initial import initial_state
 
     dataset = load_dataset(args.data_dir, factor=args.factor)
-    config = TrainerConfig(method=args.child_train, steps=args.steps, background=BACKGROUNDS["black"], opaque_background="auto")
+    config = TrainerConfig(method=args.child_train.split("+")[0], steps=args.steps, background=BACKGROUNDS["black"], opaque_background="auto",
+                           lambda_sparse_depth=args.sparse_depth)
     start = initial_state(dataset, config)
     trainer = GaussianTrainer(start.model, start.config, scene_extent=dataset.scene_extent())
     t0 = time.perf_counter()
@@ -295,7 +297,7 @@ def extracted_mesh(extraction: str, args, data: str, model: str, mesh: str) -> d
 def _child(kind: str, value: str, args, **extra) -> dict:
     cmd = [sys.executable, os.path.abspath(__file__), f"--child-{kind}", value, "--data-dir", extra["data_dir"],
            "--model", extra["model"], "--steps", str(args.steps), "--resolution", str(args.resolution),
-           "--factor", str(args.factor)]
+           "--factor", str(args.factor), "--sparse-depth", str(args.sparse_depth)]
     if "mesh" in extra:
         cmd += ["--mesh", extra["mesh"]]
     proc = subprocess.run(cmd, stdout=subprocess.PIPE, text=True)
@@ -463,6 +465,8 @@ def main() -> int:
     parser.add_argument("--resolution", type=int, default=128, help="extraction resolution (default 128)")
     parser.add_argument("--data", default=os.path.join(ROOT, "bench_data", "mesh_objects"))
     parser.add_argument("--markdown", default=None, help="write the page here (e.g. docs/benchmarks/mesh_objects.md)")
+    parser.add_argument("--sparse-depth", type=float, default=0.0, metavar="WEIGHT",
+                        help="TrainerConfig.lambda_sparse_depth: the solve's points as depth (default 0: off)")
     parser.add_argument("--retrain", action="store_true", help="train and mesh every model again, even where that was done")
     parser.add_argument("--child-train", help=argparse.SUPPRESS)
     parser.add_argument("--child-extract", help=argparse.SUPPRESS)
@@ -506,6 +510,8 @@ def main() -> int:
         refine = solve_refinement(folder, matrix, truth)
         data = os.path.join(folder, "data")
         for method in methods:
+            if args.sparse_depth:  # its own files and rows: 'vanilla+depth0.01'
+                method = f"{method}+depth{args.sparse_depth:g}"
             model = os.path.join(folder, f"{method}_{args.steps}.ply")
             trained = trained_model(method, args, data, model)
             for extraction in extractions:

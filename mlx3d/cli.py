@@ -247,6 +247,13 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _non_negative_float(text: str) -> float:
+    value = float(text)
+    if not value >= 0:  # NaN too
+        raise argparse.ArgumentTypeError(f"must be a number >= 0, got {text}")
+    return value
+
+
 def _background_arg(text: str):
     from .training.evaluate import BACKGROUNDS
 
@@ -332,7 +339,11 @@ def _train(args, ranks) -> None:
         bilateral_grid={"on": True, "off": False}.get(args.bilateral_grid, "auto"),
         init_random_points=args.random_points, init_background_points=args.background_points,
         opaque_background=None if args.opaque_background == "same" else args.opaque_background, batch_size=args.batch_size,
+        lambda_sparse_depth=args.sparse_depth,
     )
+    if args.sparse_depth and dataset.observations is None:
+        raise ValueError(f"--sparse-depth needs the points a solve placed and the photos that observe them (a COLMAP "
+                         f"model, as `mlx3d poses` writes); {data} has none")
     if args.steps_scaler != 1.0:
         config = config.scale_steps(args.steps_scaler)
         print(f"steps scaled by {args.steps_scaler:g}: {config.steps:,} steps")
@@ -628,6 +639,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a dataset without points starts from N random points in a cube around what the cameras look at (default 100000)")
     p.add_argument("--background-points", type=int, default=None, metavar="N",
                    help="N points on a far sphere seed a backdrop (default: vanilla and mcmc on opaque photos; 0: none)")
+    p.add_argument("--sparse-depth", type=_non_negative_float, default=0.0, metavar="WEIGHT",
+                   help="the solve's sparse points as depth: WEIGHT x the L1 error of inverse depth at every point a photo "
+                        "observes (default 0: off; e.g. 0.01); needs a COLMAP model's points")
     p.add_argument("--batch-size", type=_positive_int, default=1, metavar="N",
                    help="views per step (default 1); the learning rates scale by sqrt(N) as in gsplat. With several ranks, "
                         "the batch is shared between them")

@@ -10,7 +10,7 @@ from mlx3d.cameras import Camera
 from mlx3d.cli import main
 from mlx3d.splatting import GaussianModel
 from mlx3d.training.plan import OPTIONAL_STAGES, step_plan
-from mlx3d.training.trainer import GaussianTrainer, TrainerConfig
+from mlx3d.training.trainer import GaussianTrainer, TrainerConfig, TrainingView
 
 
 def problem(camera_model="pinhole"):
@@ -66,6 +66,19 @@ def test_a_step_runs_exactly_its_plan_and_nothing_unneeded(index):
     assert not (must_not & stages), must_not & stages
     assert set(plan.skipped) & stages == set()
     assert set(OPTIONAL_STAGES) - stages <= set(plan.skipped)
+
+
+def test_sparse_depth_renders_depth_only_for_a_view_that_observes_points():
+    model, cam, target = problem()
+    points = (np.array([[10.5, 8.5], [20.0, 12.0]], np.float32), np.array([3.0, 3.2], np.float32))
+    trainer = GaussianTrainer(model, TrainerConfig(steps=100, lambda_sparse_depth=0.1), scene_extent=3.0)
+    with_points = trainer.step_batch([TrainingView(cam, target, points=points)])
+    assert {"rasterize_rgb+depth", "loss_sparse_depth"} <= set(with_points["stages"])
+    assert with_points["sparse_depth_loss"] > 0
+    without = trainer.step(cam, target)
+    assert "rasterize_rgb" in without["stages"] and "loss_sparse_depth" not in without["stages"]
+    off = GaussianTrainer(model, TrainerConfig(steps=100), scene_extent=3.0).step_batch([TrainingView(cam, target, points=points)])
+    assert "rasterize_rgb" in off["stages"] and "loss_sparse_depth" not in off["stages"] and "sparse_depth_loss" not in off
 
 
 def test_a_plain_render_runs_only_projection_binning_sh_and_colour():

@@ -63,6 +63,13 @@ def test_resume_and_errors(dataset_dir, tmp_path, capsys):
     assert main(["train", str(tmp_path / "nothing"), "--out", str(out / "x.ply"), "--steps", "5"]) == 1
     assert "nothing" in capsys.readouterr().err
     assert not (out / "x.ply").exists()
+    # transforms.json holds points but no photo's observations of them
+    assert main(["train", str(dataset_dir), "--out", str(out / "x.ply"), "--steps", "5", "--sparse-depth", "0.01"]) == 1
+    assert "--sparse-depth needs the points a solve placed" in capsys.readouterr().err
+    assert not (out / "x.ply").exists()
+    with pytest.raises(SystemExit):
+        main(["train", str(dataset_dir), "--out", str(out / "x.ply"), "--sparse-depth", "nan"])
+    assert "must be a number >= 0" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("method", ["vanilla", "mcmc"])

@@ -13,6 +13,13 @@ edges do not pull on them:
   rendered depth map describes (cross product of its central differences,
   unprojected through the camera). Zero when the surfels lie flat on the
   surface they render.
+
+A third term serves any method: the sparse depth of a structure-from-motion
+solve. Each point a photo observes (``Dataset.observations``) gives the
+camera z of the surface at its pixel; ``sparse_depth_loss`` is the mean L1
+distance between the inverse of the rendered (expected) depth there and the
+inverse of the point's, times the scene extent (gsplat's depth loss). It holds
+down surfaces the photos alone leave ambiguous (a dark, shadowed floor).
 """
 
 from __future__ import annotations
@@ -87,3 +94,31 @@ def normal_consistency_loss(normals: mx.array, depth: mx.array, alpha: mx.array,
     mask = mx.stop_gradient((alpha[1:-1, 1:-1] >= min_alpha).astype(mx.float32))
     agreement = mx.sum(normals[1:-1, 1:-1] * n_depth, axis=-1)
     return _masked_mean(1.0 - agreement, mask)
+
+
+def sparse_points(camera, points: np.ndarray, pixels: np.ndarray, index: np.ndarray) -> tuple | None:
+    """The depth targets of one view: ``(pixels (K, 2) float32, camera z (K,) float32)`` of the observed
+    ``points[index]`` ((M, 3) world) at their observed ``pixels`` ((K, 2), the view's pixels), kept where
+    they lie in front of ``camera`` (z beyond its near plane) and inside its image; None when none does."""
+    world = np.asarray(points, dtype=np.float64)[np.asarray(index, dtype=np.int64)]
+    view = np.asarray(camera.viewmat, dtype=np.float64)
+    z = world @ view[2, :3] + view[2, 3]
+    xy = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
+    keep = (z > camera.znear) & (xy[:, 0] >= 0) & (xy[:, 1] >= 0) & (xy[:, 0] < camera.width) & (xy[:, 1] < camera.height)
+    if not keep.any():
+        return None
+    return xy[keep].astype(np.float32), z[keep].astype(np.float32)
+
+
+def sparse_depth_loss(depth: mx.array, pixels: np.ndarray, z: np.ndarray, scale: float) -> mx.array:
+    """Mean ``|1 / depth[pixel] - 1 / z|`` over the points, times ``scale`` (the scene extent: unit-free).
+
+    depth (H,W) the rendered alpha-normalised camera z, read at each point's pixel (the pixel holding
+    ``pixels`` (K, 2), x right and y down from the image's corner); z (K,) the points' camera z. Pixels
+    the render leaves empty (depth 0) count as inverse depth 0."""
+    h, w = depth.shape
+    col = np.clip(np.floor(pixels[:, 0]), 0, w - 1).astype(np.int64)
+    row = np.clip(np.floor(pixels[:, 1]), 0, h - 1).astype(np.int64)
+    rendered = depth.reshape(-1)[mx.array(row * w + col)]
+    inverse = mx.where(rendered > 0, 1.0 / mx.maximum(rendered, 1e-12), 0.0)
+    return mx.mean(mx.abs(inverse - mx.array(1.0 / z, dtype=mx.float32))) * scale

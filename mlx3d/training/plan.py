@@ -23,7 +23,7 @@ from ..render import RenderPlan, plan_render
 
 OPTIONAL_STAGES = (
     "antialias_compensation", "gaussian_normals", "bilateral_grid", "loss_dssim", "loss_depth_variance",
-    "loss_normal_consistency", "loss_bilateral_tv", "loss_opacity_l1", "loss_scale_l1", "thickness_clamp", "sgld_noise",
+    "loss_normal_consistency", "loss_sparse_depth", "loss_bilateral_tv", "loss_opacity_l1", "loss_scale_l1", "thickness_clamp", "sgld_noise",
     "screen_statistics",
 )
 GEOMETRY_CHANNELS = ("depth", "depth2", "normals")
@@ -35,7 +35,8 @@ class StepPlan:
 
     render: RenderPlan
     colour_correction: tuple  # ('bilateral_grid',) or ()
-    losses: tuple  # loss terms: 'l1', 'dssim', 'depth_variance', 'normal_consistency', 'bilateral_tv', 'opacity_l1', 'scale_l1'
+    losses: tuple  # loss terms: 'l1', 'dssim', 'depth_variance', 'normal_consistency', 'sparse_depth', 'bilateral_tv', 'opacity_l1',
+    # 'scale_l1'
     after_step: tuple  # 'thickness_clamp' (2dgs), 'sgld_noise' (mcmc), 'screen_statistics' (until the last densification)
     events: tuple  # schedule events after this step (see trainer.events_at)
 
@@ -72,17 +73,19 @@ def gathers_screen_statistics(config, step: int) -> bool:
     return event <= config.densify_until
 
 
-def step_plan(config, camera, sh_degree: int, step: int = 0, backend: str = "auto") -> StepPlan:
+def step_plan(config, camera, sh_degree: int, step: int = 0, backend: str = "auto", sparse_points: bool = False) -> StepPlan:
     """The plan of training step ``step + 1`` (``step`` steps done) for ``config``
-    on ``camera`` with SH evaluated up to ``sh_degree`` (the active degree)."""
+    on ``camera`` with SH evaluated up to ``sh_degree`` (the active degree); ``sparse_points``: the view
+    observes sparse points (``TrainingView.points``), which ``lambda_sparse_depth`` needs."""
     from .trainer import events_at
 
     geometry = step >= config.geometry_from
     depth_variance = geometry and config.lambda_2d_depth_variance > 0
     normals = geometry and config.lambda_2d_normal_consistency > 0
+    sparse_depth = sparse_points and config.lambda_sparse_depth > 0
     render = plan_render(
         camera, sh=np.zeros((0, (sh_degree + 1) ** 2, 3)), sh_degree=sh_degree, projection=config.projection, antialias=config.antialias,
-        render_depth=normals, backend=backend, render_depth_variance=depth_variance, render_normals=normals,
+        render_depth=normals or sparse_depth, backend=backend, render_depth_variance=depth_variance, render_normals=normals,
         planar_depth=config.method == "2dgs",
     )
     losses = ["l1"]
@@ -92,6 +95,8 @@ def step_plan(config, camera, sh_degree: int, step: int = 0, backend: str = "aut
         losses.append("depth_variance")
     if normals:
         losses.append("normal_consistency")
+    if sparse_depth:
+        losses.append("sparse_depth")
     if config.bilateral_grid is True and config.lambda_bilateral_tv > 0:
         losses.append("bilateral_tv")
     if config.method == "mcmc":

@@ -38,7 +38,7 @@ from ..render.pipeline import PROJECTIONS
 from ..splatting.model import PARAM_NAMES, GaussianModel
 from .adam import Adam, all_finite
 from .density import add_gaussians_mcmc, densify_and_prune, relocate_dead, reset_opacities, sgld_noise
-from .geometry import DepthUnprojector, depth_variance_loss, normal_consistency_loss
+from .geometry import DepthUnprojector, depth_variance_loss, normal_consistency_loss, sparse_depth_loss, sparse_points
 from .metrics import photometric_loss, psnr
 from .plan import step_plan
 from .statistics import ScreenStatistics
@@ -121,6 +121,9 @@ class TrainerConfig:
     lambda_2d_depth_variance: float | None = None  # '2dgs': 10, else 0
     lambda_2d_normal_consistency: float | None = None  # '2dgs': 0.05, else 0
     geometry_min_alpha: float = 0.5  # the regularisers apply where the render's alpha reaches this
+    # the solve's sparse points as depth (Dataset.observations): L1 of inverse depth at each point a view observes,
+    # times the scene extent (mlx3d.training.geometry.sparse_depth_loss); 0: off
+    lambda_sparse_depth: float = 0.0
     geometry_from: int = 1000  # and from this step on
     seed: int = 0
     # views per step, over all ranks of a distributed run; 1: one view per step (3DGS). B > 1 scales the
@@ -184,6 +187,8 @@ class TrainerConfig:
             self.lambda_2d_normal_consistency = 0.05 if surfels else 0.0
         if self.lambda_2d_depth_variance < 0 or self.lambda_2d_normal_consistency < 0:
             raise ValueError("lambda_2d_depth_variance and lambda_2d_normal_consistency must be >= 0")
+        if not self.lambda_sparse_depth >= 0:
+            raise ValueError(f"lambda_sparse_depth must be >= 0, got {self.lambda_sparse_depth}")
         if not self.two_d_thickness > 0:
             raise ValueError(f"two_d_thickness must be > 0, got {self.two_d_thickness}")
 
@@ -220,13 +225,16 @@ def batch_adam(batch_size: int) -> dict:
 @dataclass
 class TrainingView:
     """One view of a training step: camera, target (H, W, 3) in [0, 1], weight (H, W) or None,
-    background (r, g, b) or None (the config's), image_index (the bilateral grid's image) or None."""
+    background (r, g, b) or None (the config's), image_index (the bilateral grid's image) or None,
+    points: the sparse points the view observes, ``(pixels (K, 2) float32, camera z (K,) float32)``, or None
+    (``lambda_sparse_depth``; see ``sparse_points``)."""
 
     camera: object
     target: object
     weight: object = None
     background: object = None
     image_index: int | None = None
+    points: tuple | None = None
 
 
 def events_at(config: TrainerConfig, step: int) -> tuple:
@@ -339,12 +347,13 @@ class GaussianTrainer:
             return tuple(self.rng.uniform(0, 1, 3))
         return tuple(bg)
 
-    def _loss(self, p, offset, grid, camera, target, mask, bg, plan, degree, image_index=None):
+    def _loss(self, p, offset, grid, camera, target, mask, bg, plan, degree, image_index=None, points=None):
         """(loss, render output) of one view: the photometric loss plus the terms in ``plan.losses``.
 
         p: the raw parameters; offset: None or (N, 2) added to the 2D means
         (dL/d offset is the screen-space gradient); grid: the bilateral grid
-        when ``image_index`` is given. ``out['ran']`` lists the stages run.
+        when ``image_index`` is given; points: the view's sparse depth targets
+        (``TrainingView.points``). ``out['ran']`` lists the stages run.
         """
         c = self.config
         use_grid = self.bilateral is not None and image_index is not None
@@ -372,6 +381,10 @@ class GaussianTrainer:
             out["normal_loss"] = normal_consistency_loss(out["normals"], out["depth"], out["alpha"], camera, self.unprojector, c.geometry_min_alpha)
             loss = loss + c.lambda_2d_normal_consistency * out["normal_loss"]
             ran.append("loss_normal_consistency")
+        if "sparse_depth" in terms:
+            out["sparse_depth_loss"] = sparse_depth_loss(out["depth"], *points, self.scene_extent)
+            loss = loss + c.lambda_sparse_depth * out["sparse_depth_loss"]
+            ran.append("loss_sparse_depth")
         if "bilateral_tv" in terms:
             loss = loss + c.lambda_bilateral_tv * self.bilateral.tv_loss(grid)
             ran.append("loss_bilateral_tv")
@@ -432,7 +445,9 @@ class GaussianTrainer:
                 grid_grads.append(grad_grid)
             screens.append((view.camera, screen))
             ran = out["ran"] if ran is None else ran
-            for key in ("depth_variance_loss", "normal_loss"):
+            if c.lambda_sparse_depth > 0:  # the same keys on every rank: 0 for a view that observes no point
+                out.setdefault("sparse_depth_loss", mx.array(0.0))
+            for key in ("depth_variance_loss", "normal_loss", "sparse_depth_loss"):
                 if key in out:
                     extra[key] = out[key] if key not in extra else extra[key] + out[key]
             mx.eval(loss_sum, psnr_sum, grads, *grid_grads[-1:], *screen, *extra.values())
@@ -509,10 +524,10 @@ class GaussianTrainer:
         bg = self.background_colour() if view.background is None else tuple(view.background)
         target = mx.array(view.target, dtype=mx.float32)
         mask = None if view.weight is None else mx.array(view.weight, dtype=mx.float32)
-        plan = step_plan(c, camera, degree, self.step_count)
+        plan = step_plan(c, camera, degree, self.step_count, sparse_points=view.points is not None)
 
         def loss_fn(p, offset, grid):
-            return self._loss(p, offset, grid, camera, target, mask, bg, plan, degree, image_index if use_grid else None)
+            return self._loss(p, offset, grid, camera, target, mask, bg, plan, degree, image_index if use_grid else None, view.points)
 
         grid_in = self.grid_optimizer.current(self.bilateral, image_index) if use_grid else mx.zeros((1,))
         # dL/d(means2d) through a zero offset, only for the densification statistics
@@ -634,6 +649,7 @@ class GaussianTrainer:
             ranks.check_same("model state at the start", self.state_digest())
         positions = ranks.positions(batch) if ranks is not None else list(range(batch))
         spec = self.training_background(dataset)
+        targets = self.sparse_depth_targets(dataset)
         history = []
         for i in range(steps):
             stop = should_stop is not None and should_stop()
@@ -646,7 +662,7 @@ class GaussianTrainer:
             views = []
             for index, colour in (drawn[p] for p in positions):  # the target is composited on the colour the render uses
                 image, weight = dataset.load_image(index, background=colour, rng=self.rng)
-                views.append(TrainingView(dataset.frames[index].camera, image, weight, colour, index))
+                views.append(TrainingView(dataset.frames[index].camera, image, weight, colour, index, targets.get(index)))
             info = self.step_batch(views, [index for index, _ in drawn])
             history.append(info)
             if self.config.checkpoint_every and self.config.checkpoint_dir and self.step_count % self.config.checkpoint_every == 0:
@@ -654,6 +670,19 @@ class GaussianTrainer:
             if progress is not None:
                 progress(i + 1, steps, info)
         return history
+
+    def sparse_depth_targets(self, dataset) -> dict:
+        """{frame index: ``TrainingView.points``} of the training frames that observe sparse points (the solve's
+        ``dataset.observations``), when ``lambda_sparse_depth`` is on; else, or without observations, {}."""
+        if not self.config.lambda_sparse_depth > 0 or dataset.observations is None:
+            return {}
+        targets = {}
+        for index in dataset.train:
+            pixels, point_index = dataset.observations[index]
+            found = sparse_points(dataset.frames[index].camera, dataset.points, pixels, point_index) if len(point_index) else None
+            if found is not None:
+                targets[index] = found
+        return targets
 
     def _run_digest(self, dataset) -> bytes:
         """Bytes identifying the settings and the training cameras of a run (not where it writes)."""
