@@ -121,10 +121,10 @@ class TrainerConfig:
     lambda_2d_depth_variance: float | None = None  # '2dgs': 10, else 0
     lambda_2d_normal_consistency: float | None = None  # '2dgs': 0.05, else 0
     geometry_min_alpha: float = 0.5  # the regularisers apply where the render's alpha reaches this
+    geometry_from: int = 1000  # and from this step on
     # the solve's sparse points as depth (Dataset.observations): L1 of inverse depth at each point a view observes,
     # times the scene extent (mlx3d.training.geometry.sparse_depth_loss); 0: off
     lambda_sparse_depth: float = 0.0
-    geometry_from: int = 1000  # and from this step on
     seed: int = 0
     # views per step, over all ranks of a distributed run; 1: one view per step (3DGS). B > 1 scales the
     # learning rates by sqrt(B) and Adam's betas and eps with it (see batch_adam); schedules: scale_steps
