@@ -2,7 +2,7 @@
 
     python bench/mesh_objects.py [--objects suzanne,bumpy_sphere,torus_knot] [--methods vanilla,2dgs]
                                  [--extract fusion,poisson] [--steps 7000] [--size 640] [--factor 2]
-                                 [--resolution 128] [--sparse-depth 0]
+                                 [--resolution 128] [--sparse-depth 0] [--background-points N]
                                  [--data bench_data/mesh_objects] [--markdown docs/benchmarks/mesh_objects.md]
 
 Each object (a subdivided Suzanne, a sphere displaced by a noise texture, a
@@ -23,7 +23,8 @@ out); its cameras are solved from the photos by ``mlx3d poses``
 Training starts from the sparse points of the solve (every 8th photo held
 out), black background, as ``mlx3d train DATA`` does, for ``--steps`` steps
 per method (``--sparse-depth W``: with the solve's points as depth,
-``TrainerConfig.lambda_sparse_depth``, its rows and files named 'METHOD+depthW'). Each model is meshed by each extraction method at
+``TrainerConfig.lambda_sparse_depth``, its rows and files named 'METHOD+depthW';
+``--background-points N``: a backdrop of N points, 'METHOD+backdropN'). Each model is meshed by each extraction method at
 ``--resolution`` (fusion from the training cameras, of their median depth,
 or with ``fusion-expected`` of their expected depth; Poisson with normals
 towards them), the mesh is taken into Blender's frame by the similarity that
@@ -236,7 +237,7 @@ def _train_child(args) -> None:
 
     dataset = load_dataset(args.data_dir, factor=args.factor)
     config = TrainerConfig(method=args.child_train.split("+")[0], steps=args.steps, background=BACKGROUNDS["black"], opaque_background="auto",
-                           lambda_sparse_depth=args.sparse_depth)
+                           lambda_sparse_depth=args.sparse_depth, init_background_points=args.background_points)
     start = initial_state(dataset, config)
     trainer = GaussianTrainer(start.model, start.config, scene_extent=dataset.scene_extent())
     t0 = time.perf_counter()
@@ -298,6 +299,8 @@ def _child(kind: str, value: str, args, **extra) -> dict:
     cmd = [sys.executable, os.path.abspath(__file__), f"--child-{kind}", value, "--data-dir", extra["data_dir"],
            "--model", extra["model"], "--steps", str(args.steps), "--resolution", str(args.resolution),
            "--factor", str(args.factor), "--sparse-depth", str(args.sparse_depth)]
+    if args.background_points is not None:
+        cmd += ["--background-points", str(args.background_points)]
     if "mesh" in extra:
         cmd += ["--mesh", extra["mesh"]]
     proc = subprocess.run(cmd, stdout=subprocess.PIPE, text=True)
@@ -467,6 +470,8 @@ def main() -> int:
     parser.add_argument("--markdown", default=None, help="write the page here (e.g. docs/benchmarks/mesh_objects.md)")
     parser.add_argument("--sparse-depth", type=float, default=0.0, metavar="WEIGHT",
                         help="TrainerConfig.lambda_sparse_depth: the solve's points as depth (default 0: off)")
+    parser.add_argument("--background-points", type=int, default=None, metavar="N",
+                        help="TrainerConfig.init_background_points: a backdrop of N points (default: the method's)")
     parser.add_argument("--retrain", action="store_true", help="train and mesh every model again, even where that was done")
     parser.add_argument("--child-train", help=argparse.SUPPRESS)
     parser.add_argument("--child-extract", help=argparse.SUPPRESS)
@@ -512,6 +517,8 @@ def main() -> int:
         for method in methods:
             if args.sparse_depth:  # its own files and rows: 'vanilla+depth0.01'
                 method = f"{method}+depth{args.sparse_depth:g}"
+            if args.background_points is not None:  # '2dgs+backdrop5000'
+                method = f"{method}+backdrop{args.background_points}"
             model = os.path.join(folder, f"{method}_{args.steps}.ply")
             trained = trained_model(method, args, data, model)
             for extraction in extractions:
