@@ -23,6 +23,7 @@ test-kernel-platforms`` installs them.
 
 from __future__ import annotations
 
+import functools
 import importlib.util
 import os
 import shutil
@@ -151,8 +152,9 @@ def knn_calls():
 RASTER_SIZE = (72, 52, 16)  # width, height, tile: tiles cut by the image's edges
 
 
+@functools.lru_cache(maxsize=1)
 def splat_scene():
-    """The real splat file's arrays and a small camera beside it (RASTER_SIZE)."""
+    """The real splat file's arrays and a small camera beside it (RASTER_SIZE), read once."""
     from mlx3d.cameras import Camera
     from mlx3d.io import read_splats
 
