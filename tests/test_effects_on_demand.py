@@ -37,7 +37,7 @@ CASES = [
     (dict(method="2dgs", geometry_from=0), "pinhole", 0,
      {"gaussian_normals", "rasterize_rgb+depth_planes+depth2+normals", "loss_depth_variance", "loss_normal_consistency"}, set()),
     (dict(method="2dgs", geometry_from=0, lambda_2d_normal_consistency=0.0), "pinhole", 0,
-     {"gaussian_normals", "rasterize_rgb+depth_planes+depth2", "loss_depth_variance"}, {"loss_normal_consistency"}),
+     {"rasterize_rgb+depth2", "loss_depth_variance"}, {"loss_normal_consistency", "gaussian_normals"}),
     (dict(lambda_2d_normal_consistency=0.1, geometry_from=0), "pinhole", 0, {"rasterize_rgb+depth+normals", "loss_normal_consistency"}, {"thickness_clamp"}),
     (dict(bilateral_grid=True), "pinhole", 0, {"bilateral_grid", "loss_bilateral_tv"}, set()),
     (dict(bilateral_grid=True, lambda_bilateral_tv=0.0), "pinhole", 0, {"bilateral_grid"}, {"loss_bilateral_tv"}),

@@ -269,11 +269,11 @@ PARAMS = ("means", "quats", "scales", "opacities", "colour")
 
 
 def _weights(case: Case) -> dict:
-    """A random linear function of every rendered map (depth terms divided by the camera distance)."""
+    """A random linear function of every rendered map (depth terms made dimensionless by the camera distance)."""
     rng = np.random.default_rng(case.weights_seed)
     h, w = case.camera.height, case.camera.width
     shapes = {"image": (h, w, 3), "alpha": (h, w), "depth": (h, w), "depth_variance": (h, w), "normals": (h, w, 3)}
-    scale = {"depth": 1.0 / case.distance, "depth_variance": 1.0 / case.distance**2}
+    scale = {"depth": 1.0 / case.distance, "depth_variance": 1.0 / case.distance**2 if case.camera.model == "orthographic" else case.distance**2}
     return {k: mx.array((rng.normal(size=s) * scale.get(k, 1.0)).astype(np.float32)) for k, s in shapes.items()}
 
 

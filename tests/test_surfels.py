@@ -71,13 +71,14 @@ def test_geometry_channels_composite_like_the_analytic_two_layer_case(planar):
         "opacities": mx.array(a.astype(np.float32)),
         "colors": mx.array(np.float32([[1, 0, 0], [0, 1, 0]])),
     }
-    out = render_gaussians(cam, **s, render_depth_variance=True, render_normals=True, planar_depth=planar, backend=FAST)
+    out = render_gaussians(cam, **s, render_depth=True, render_depth_variance=True, render_normals=True, planar_depth=planar, backend=FAST)
     i, j = cam.height // 2, cam.width // 2  # the projected means: planar and centre depths agree there
     w = np.array([a[0], a[1] * (1 - a[0])])  # both discs peak (G = 1) at the centre pixel
     mean = (w @ z) / w.sum()
     assert float(out["alpha"][i, j]) == pytest.approx(w.sum(), abs=1e-5)
     assert float(out["depth"][i, j]) == pytest.approx(mean, abs=1e-4)
-    assert float(out["depth_variance"][i, j]) == pytest.approx((w @ (z - mean) ** 2) / w.sum(), rel=1e-3)
+    inverse_mean = (w @ (1 / z)) / w.sum()
+    assert float(out["depth_variance"][i, j]) == pytest.approx((w @ (1 / z - inverse_mean) ** 2) / w.sum(), rel=1e-3)
     facing = normals * np.array([[1.0], [-1.0]])
     expected = w @ facing
     np.testing.assert_allclose(np.array(out["normals"][i, j]), expected / np.linalg.norm(expected), atol=1e-4)
@@ -160,14 +161,16 @@ def test_geometry_channels_match_explicit_feature_renders():
         "opacities": mx.array(rng.uniform(0.2, 0.9, n).astype(np.float32)),
     }
     cam = front_camera(48, 40)
-    out = render_gaussians(cam, **s, colors=mx.zeros((n, 3)), render_depth_variance=True, render_normals=True, depth_reference=4.0, backend=FAST)
+    out = render_gaussians(cam, **s, colors=mx.zeros((n, 3)), render_depth=True, render_depth_variance=True, render_normals=True,
+                           depth_reference=4.0, backend=FAST)
     depth = np.asarray(s["means"])[:, 1] + 4.0
-    feats = np.concatenate([depth[:, None], (depth[:, None] - 4.0) ** 2, np.array(facing_normals(cam, s["means"], s["quats"]))], 1)
+    feats = np.concatenate([depth[:, None], (1 / depth[:, None] - 0.25) ** 2, np.array(facing_normals(cam, s["means"], s["quats"])),
+                            1 / depth[:, None] - 0.25], 1)
     ref = np.array(render_gaussian_features(cam, s["means"], s["quats"], s["scales"], s["opacities"], mx.array(feats.astype(np.float32)), normalize=True, backend="reference")["features"])
     hit = np.array(out["alpha"]) > 1e-3
     np.testing.assert_allclose(np.array(out["depth"])[hit], ref[..., 0][hit], atol=2e-4)
-    variance = ref[..., 1] - (ref[..., 0] - 4.0) ** 2
-    np.testing.assert_allclose(np.array(out["depth_variance"])[hit], np.maximum(variance, 0)[hit], atol=2e-3)
+    variance = ref[..., 1] - ref[..., 5] ** 2
+    np.testing.assert_allclose(np.array(out["depth_variance"])[hit], np.maximum(variance, 0)[hit], atol=1e-5)
     n_ref = ref[..., 2:5] / np.maximum(np.linalg.norm(ref[..., 2:5], axis=-1, keepdims=True), 1e-12)
     strong = hit & (np.linalg.norm(ref[..., 2:5], axis=-1) > 0.05)
     np.testing.assert_allclose(np.array(out["normals"])[strong], n_ref[strong], atol=2e-3)
@@ -229,9 +232,9 @@ def test_depth_normals_of_an_analytic_plane(model):
 
 def test_depth_variance_loss_is_the_2dgs_depth_distortion_per_unit_alpha():
     """2DGS's depth distortion, as its rasterizer accumulates it front to back, is
-    ``sum_i w_i sum_{j<i} w_j (m_i - m_j)^2`` (w_i = alpha_i T_i). Ours is the same sum in camera z divided by
-    (alpha scale)^2, so its weight does not depend on a pixel's coverage or the scene's units (2DGS maps z to
-    NDC instead): checked on three discs along a ray against that sum written out here."""
+    ``sum_i w_i sum_{j<i} w_j (m_i - m_j)^2`` (w_i = alpha_i T_i) in NDC, m = f/(f-n) (1 - n/z) with n = 0.2,
+    f = 100. Ours is the same sum in scale/z divided by alpha^2, so its weight does not depend on a pixel's
+    coverage or the scene's units: checked on three discs along a ray against that sum written out here."""
     cam = front_camera()
     z, a = np.array([3.0, 3.4, 4.5]), np.array([0.5, 0.4, 0.7])
     s = {"means": mx.array(np.float32([[0, zi - 4.0, 0] for zi in z])), "quats": mx.array(quat_from_z_to([[0, -1.0, 0]] * 3)),
@@ -239,13 +242,21 @@ def test_depth_variance_loss_is_the_2dgs_depth_distortion_per_unit_alpha():
     out = render_gaussians(cam, **s, render_depth_variance=True, planar_depth=True, backend=FAST)
     i, j = cam.height // 2, cam.width // 2
     w = a * np.concatenate([[1.0], np.cumprod(1 - a)[:-1]])  # the discs peak (G = 1) at the centre pixel
-    distortion = sum(w[k] * w[m] * (z[k] - z[m]) ** 2 for k in range(3) for m in range(k))
+    near, far = 0.2, 100.0
+    ndc = far / (far - near) * (1 - near / z)
+    distortion = sum(w[k] * w[m] * (ndc[k] - ndc[m]) ** 2 for k in range(3) for m in range(k))
     mask = np.zeros((cam.height, cam.width), np.float32)
     mask[i, j] = 1.0
     scale = 2.5
     ours = geometry.depth_variance_loss(out["depth_variance"], out["alpha"] * mx.array(mask), 0.5, scale)  # that pixel alone
     assert float(out["alpha"][i, j]) == pytest.approx(w.sum(), abs=1e-5)
-    assert float(ours) == pytest.approx(distortion / (w.sum() * scale) ** 2, rel=1e-3)
+    assert float(ours) == pytest.approx(distortion * (scale * (far - near) / (far * near) / w.sum()) ** 2, rel=1e-3)
+    # an orthographic camera's NDC depth is affine in z: there the variance is of z, in units of scale²
+    ortho = Camera.look_at(eye=(0.0, -4.0, 0.0), at=(0.0, 0.0, 0.0), up=(0, 0, 1), width=cam.width, height=cam.height, model="orthographic", focal=12.0)
+    out = render_gaussians(ortho, **s, render_depth_variance=True, planar_depth=True, backend=FAST)
+    ours = geometry.depth_variance_loss(out["depth_variance"], out["alpha"] * mx.array(mask), 0.5, scale, orthographic=True)
+    linear = sum(w[k] * w[m] * (z[k] - z[m]) ** 2 for k in range(3) for m in range(k))
+    assert float(ours) == pytest.approx(linear / (w.sum() * scale) ** 2, rel=1e-3)
 
 
 def test_the_depth_the_normal_term_shapes_is_the_depth_fusion_reads_on_one_surface():
@@ -279,7 +290,7 @@ def test_normal_consistency_and_depth_variance_tell_surfels_on_a_surface_from_ot
     unprojector = geometry.DepthUnprojector()
 
     def losses(s):
-        out = render_gaussians(cam, **s, render_depth_variance=True, render_normals=True, planar_depth=True, backend=FAST)
+        out = render_gaussians(cam, **s, render_depth=True, render_depth_variance=True, render_normals=True, planar_depth=True, backend=FAST)
         nc = geometry.normal_consistency_loss(out["normals"], out["depth"], out["alpha"], cam, unprojector, 0.5)
         dv = geometry.depth_variance_loss(out["depth_variance"], out["alpha"], 0.5, 4.0)
         return float(nc), float(dv)
@@ -292,19 +303,19 @@ def test_normal_consistency_and_depth_variance_tell_surfels_on_a_surface_from_ot
     sideways = dict(plane_surfels(), quats=mx.array(quat_from_z_to(np.tile([1.0, 0, 0], (24 * 24, 1)))))
     sideways["scales"] = mx.array(np.tile(np.float32([2 / 24, 1e-4, 2 / 24]), (24 * 24, 1)))  # thin along local y = world y: still a wall seen face on
     assert losses(sideways)[0] > 0.5
-    # two parallel layers 0.3 apart: variance of two depths
+    # two parallel layers 0.3 apart: variance of two inverse depths
     front, back = plane_surfels(), plane_surfels()
     for layer in (front, back):
         layer["opacities"] = layer["opacities"] * 0.4  # so the back layer shows through
     back["means"] = back["means"] + mx.array([0.0, 0.3, 0.0])
     two = {k: mx.concatenate([front[k], back[k]]) for k in front}
     # oracle: per pixel the front layer weighs a_f and the back one (1 - a_f)·a_b, so the variance of
-    # the two depths 0.3 apart is w_f·w_b/(w_f + w_b)²·0.09
+    # the two inverse depths is w_f·w_b/(w_f + w_b)²·(1/4 - 1/4.3)²
     a_f = np.array(render_gaussians(cam, **front, backend=FAST)["alpha"], np.float64)
     a_b = np.array(render_gaussians(cam, **back, backend=FAST)["alpha"], np.float64)
     w_f, w_b = a_f, (1 - a_f) * a_b
     covered = w_f + w_b >= 0.5
-    expected = np.mean((w_f * w_b / np.maximum(w_f + w_b, 1e-12) ** 2 * 0.09)[covered]) / 16.0
+    expected = np.mean((w_f * w_b / np.maximum(w_f + w_b, 1e-12) ** 2 * (1 / 4 - 1 / 4.3) ** 2)[covered]) * 16.0
     assert losses(two)[1] == pytest.approx(expected, rel=0.02)
 
 
@@ -358,7 +369,7 @@ def test_geometry_channels_are_rendered_only_when_their_losses_are_on(monkeypatc
     model, cams, targets = surfel_problem(1)
     for config, expected in (
         (TrainerConfig(method="vanilla", steps=4), [False, False, False]),
-        (TrainerConfig(method="2dgs", steps=4, geometry_from=2, lambda_2d_normal_consistency=0.0), [True, True, False]),
+        (TrainerConfig(method="2dgs", steps=4, geometry_from=2, lambda_2d_normal_consistency=0.0), [False, True, False]),
         (TrainerConfig(method="2dgs", steps=4, geometry_from=2, lambda_2d_depth_variance=0.0), [True, False, True]),
     ):
         calls.clear()

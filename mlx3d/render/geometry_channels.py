@@ -1,4 +1,4 @@
-"""Geometry channels composited with the colour: depth, depth², normals.
+"""Geometry channels composited with the colour: depth, inverse depth and its square, normals.
 
 Per-Gaussian features are packed into extra rasterizer channels by
 ``pack`` and turned back into per-pixel maps by ``unpack``. Depth is the
@@ -14,11 +14,15 @@ camera z. Two depth models:
   is bounded at grazing angles (|cos| >= 0.1). Its compositing needs 3 depth
   channels instead of 1.
 
-The depth variance always uses the centres' depths (1 channel for E[z] when
-the depth itself is planar, 1 for E[z²]): the planar second moment would
-expand into terms of the size of the whole image's depth range and lose the
-variance to float32 cancellation. It is computed about a reference depth (the
-mean visible depth unless given) for the same reason.
+The depth variance is that of inverse depth, 1/z (1/length²), as 2DGS's depth
+distortion measures it (in NDC, m = f/(f-n) (1 - n/z)): a ray that mixes a
+surface with a far background then varies by about the surface's 1/z, not by
+the background's distance. An orthographic camera's NDC depth is affine in z,
+so there it is the variance of z (length²). It has its own two channels, E[s]
+and E[s²] with s = 1/z - 1/r (orthographic: z - r) about a reference depth r
+(the mean visible depth unless given), which keeps float32 cancellation
+small; it uses the centres' depths, as the planar second moment would expand
+into terms of the size of the whole image's depth range.
 """
 
 from __future__ import annotations
@@ -91,14 +95,18 @@ def pack(plan, camera, means, quats, proj, reference) -> list:
     elif plan.depth:
         blocks.append(proj.depths[:, None])
     if plan.depth_variance:
-        centred = proj.depths - reference
-        blocks.append(mx.stack([centred, centred * centred], axis=1) if plan.planar_depth else (centred * centred)[:, None])
+        if camera.model == "orthographic":
+            centred = proj.depths - reference
+        else:  # culled Gaussians (never composited) may sit on the camera plane: keep 1/z finite
+            reference = mx.array(reference, dtype=mx.float32)
+            centred = 1.0 / mx.where(proj.radii > 0, proj.depths, 1.0) - mx.where(reference > 0, 1.0 / reference, 0.0)
+        blocks.append(mx.stack([centred, centred * centred], axis=1))
     if plan.normals:
         blocks.append(normals)
     return blocks
 
 
-def unpack(plan, camera, accum, alpha, reference) -> dict:
+def unpack(plan, camera, accum, alpha) -> dict:
     """Per-pixel maps from the composited channels after the 3 colour channels (see ``render_gaussians``)."""
     out = {}
     hit = alpha > 0
@@ -113,14 +121,9 @@ def unpack(plan, camera, accum, alpha, reference) -> dict:
             col += 1
         out["depth"] = mx.where(hit, depth, 0.0)
     if plan.depth_variance:
-        if plan.planar_depth:  # the centres' E[z - r] has its own channel
-            first = accum[..., col] * inv_alpha
-            col += 1
-        else:
-            first = depth - reference
-        second = accum[..., col] * inv_alpha
-        col += 1
-        # E[(z-r)²] - E[z-r]², both about the same reference r
+        first, second = accum[..., col] * inv_alpha, accum[..., col + 1] * inv_alpha
+        col += 2
+        # E[s²] - E[s]², s = 1/z - 1/r (orthographic: z - r)
         out["depth_variance"] = mx.where(hit, mx.maximum(second - mx.square(first), 0.0), 0.0)
     if plan.normals:
         n = accum[..., col : col + 3]

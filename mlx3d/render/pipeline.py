@@ -61,14 +61,14 @@ class RenderPlan:
     depth: bool
     antialias: bool
     backend: str
-    depth_variance: bool = False  # also composite depth² (implies depth)
+    depth_variance: bool = False  # composite inverse depth and its square
     normals: bool = False
     planar_depth: bool = False  # surfel planes instead of centres (see geometry_channels)
     surface: str | None = None  # None | 'behind' | 'depth_test' (see mlx3d.render.surface)
 
     @property
     def channels(self) -> tuple:
-        """Composited channel groups in order: rgb (3), depth (1, planes 3), depth2 (1, with planar depth 2), normals (3)."""
+        """Composited channel groups in order: rgb (3), depth (1, planes 3), depth2 (2: 1/z and its square), normals (3)."""
         planes = "_planes" if self.planar_depth else ""
         out = ["rgb"]
         if self.depth:
@@ -124,10 +124,10 @@ def plan_render(
     degree = None
     if sh is not None:
         degree = min(int(sh_degree), _sh_degree_present(num_coefficients(sh)))
-    variance = bool(render_depth_variance)
-    depth = bool(render_depth) or variance
+    depth = bool(render_depth)
     return RenderPlan(
-        method, degree, depth, bool(antialias), resolve_backend(backend), variance, bool(render_normals), bool(planar_depth) and depth, mode
+        method, degree, depth, bool(antialias), resolve_backend(backend), bool(render_depth_variance), bool(render_normals),
+        bool(planar_depth) and depth, mode,
     )
 
 
@@ -212,9 +212,11 @@ def render_gaussians(
     (what ran), and the geometry asked for, each 0 where nothing is hit:
 
     - ``render_depth``: ``depth`` (H,W), the alpha-normalised expected camera z;
-    - ``render_depth_variance``: also ``depth_variance`` (H,W), the
-      alpha-weighted variance of the Gaussians' z along each pixel's ray
-      (computed around ``depth_reference``, default the mean visible depth, to
+    - ``render_depth_variance``: ``depth_variance`` (H,W), the alpha-weighted
+      variance of the Gaussians' inverse depth 1/z (1/length²) along each
+      pixel's ray, the spread 2DGS's depth distortion measures, which a far
+      background barely changes (for an orthographic camera, of z: length²;
+      computed around ``depth_reference``, default the mean visible depth, to
       keep float32 cancellation small);
     - ``render_normals``: ``normals`` (H,W,3), the alpha-weighted world-space
       local z axes facing the camera (``facing_normals``), normalised to unit
@@ -268,7 +270,7 @@ def render_gaussians(
     out = {"image": accum[..., :3], "alpha": alpha, "final_T": 1.0 - alpha, "n_contrib": last}
     out.update(_projection_outputs(proj))
     out.update({"plan": plan, "stages": tuple(ran)})
-    out.update(geometry_channels.unpack(plan, camera, accum, alpha, depth_reference))
+    out.update(geometry_channels.unpack(plan, camera, accum, alpha))
     return out
 
 

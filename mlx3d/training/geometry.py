@@ -79,10 +79,12 @@ def _masked_mean(values: mx.array, mask: mx.array) -> mx.array:
     return mx.sum(values * mask) / mx.maximum(mx.sum(mask), 1.0)
 
 
-def depth_variance_loss(depth_variance: mx.array, alpha: mx.array, min_alpha: float, scale: float) -> mx.array:
-    """Mean ray-depth variance (H,W) over pixels with alpha >= ``min_alpha``, in units of ``scale²``."""
+def depth_variance_loss(depth_variance: mx.array, alpha: mx.array, min_alpha: float, scale: float, orthographic: bool = False) -> mx.array:
+    """Mean ray variance (H,W) of inverse depth over pixels with alpha >= ``min_alpha``, times ``scale²``
+    (dimensionless: the variance of scale/z); with an ``orthographic`` camera the map is that of depth, divided by ``scale²``."""
     mask = mx.stop_gradient((alpha >= min_alpha).astype(mx.float32))
-    return _masked_mean(depth_variance, mask) / (scale * scale)
+    units = 1.0 / (scale * scale) if orthographic else scale * scale
+    return _masked_mean(depth_variance, mask) * units
 
 
 def normal_consistency_loss(normals: mx.array, depth: mx.array, alpha: mx.array, camera, unprojector: DepthUnprojector, min_alpha: float) -> mx.array:

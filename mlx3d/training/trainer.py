@@ -374,7 +374,9 @@ class GaussianTrainer:
         loss = photometric_loss(image, target, c.lambda_dssim, mask, backend=r.backend)  # skips SSIM when lambda_dssim is 0
         ran += ["loss_l1", "loss_dssim"] if c.lambda_dssim > 0 else ["loss_l1"]
         if "depth_variance" in terms:
-            out["depth_variance_loss"] = depth_variance_loss(out["depth_variance"], out["alpha"], c.geometry_min_alpha, self.scene_extent)
+            out["depth_variance_loss"] = depth_variance_loss(
+                out["depth_variance"], out["alpha"], c.geometry_min_alpha, self.scene_extent, camera.model == "orthographic"
+            )
             loss = loss + c.lambda_2d_depth_variance * out["depth_variance_loss"]
             ran.append("loss_depth_variance")
         if "normal_consistency" in terms:
