@@ -259,6 +259,25 @@ def test_depth_variance_loss_is_the_2dgs_depth_distortion_per_unit_alpha():
     assert float(ours) == pytest.approx(linear / (w.sum() * scale) ** 2, rel=1e-3)
 
 
+def test_a_far_backdrop_keeps_the_depth_variance_of_a_surface_edge_bounded():
+    """A half-covering disc at depth 4 in front of a backdrop disc: the variance of inverse depth is bounded by the
+    disc's own (1/4)², wherever the backdrop is (camera z's variance would grow with its distance squared: from 40
+    to 4000 away, 10,000 times as much)."""
+    cam = front_camera()
+    i, j = cam.height // 2, cam.width // 2
+    mask = np.zeros((cam.height, cam.width), np.float32)
+    mask[i, j] = 1.0
+    w = np.array([0.5, 0.99 * 0.5])  # both discs peak (G = 1) at the centre pixel
+    mix = w[0] * w[1] / w.sum() ** 2
+    for far in (40.0, 4000.0):
+        s = {"means": mx.array(np.float32([[0, 0, 0], [0, far - 4.0, 0]])), "quats": mx.array(quat_from_z_to([[0, -1.0, 0]] * 2)),
+             "scales": mx.array(np.float32([[0.5, 0.5, 1e-3], [far, far, 1e-3]])), "opacities": mx.array(np.float32([0.5, 0.99])),
+             "colors": mx.zeros((2, 3))}
+        out = render_gaussians(cam, **s, render_depth_variance=True, backend=FAST)
+        loss = float(geometry.depth_variance_loss(out["depth_variance"], out["alpha"] * mx.array(mask), 0.5, 4.0))
+        assert loss == pytest.approx(mix * 16 * (1 / 4 - 1 / far) ** 2, rel=1e-3) and loss < mix, far
+
+
 def test_the_depth_the_normal_term_shapes_is_the_depth_fusion_reads_on_one_surface():
     """Normal consistency differentiates the planar expected depth; mesh fusion reads the planar median depth.
     Where a ray meets one surface (what the depth distortion term drives training to) they agree; where two
