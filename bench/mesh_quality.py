@@ -76,9 +76,15 @@ def sample_surface(mesh, count: int, seed: int = 0):
     return points, normals
 
 
-def compare(mesh, truth) -> dict:
+def compare(mesh, truth, observed=None, ground=None) -> dict:
     """Chamfer distance, accuracy, completeness, F-scores at 0.5 % and 1 % of the truth's bounding-box diagonal
-    (``f_0.5``, ``f_1``) and normal consistency of ``mesh`` against ``truth`` (see the module docstring)."""
+    (``f_0.5``, ``f_1``) and normal consistency of ``mesh`` against ``truth`` (see the module docstring).
+
+    With ``observed`` ((SAMPLES,) bool: which of the truth's samples, ``sample_surface(truth, SAMPLES, 2)``, a
+    photo sees) and ``ground`` (the height z of a ground plane under the truth), also ``observed_chamfer``,
+    ``observed_f_0.5`` and ``observed_f_1``: the mesh's distances are to the truth or the ground, whichever is
+    nearer (the ground is true surface too), and the truth's only from its observed samples, as DTU's
+    evaluation counts what its cameras see."""
     from mlx3d.neighbors import knn
 
     p, pn = sample_surface(mesh, SAMPLES, 1)
@@ -91,7 +97,19 @@ def compare(mesh, truth) -> dict:
     diagonal = float(np.linalg.norm(truth.vertices.max(0) - truth.vertices.min(0)))
     out = {"chamfer": chamfer, "chamfer_frac": chamfer / diagonal, "normal_consistency": float(nc), "diagonal": diagonal,
            "accuracy": float(to_truth.mean()), "completeness": float(to_mesh.mean())}
-    for percent in (0.5, 1):  # precision: the mesh's samples that close to the truth; recall: the truth's to the mesh
+    out.update(_f_scores(to_truth, to_mesh, diagonal))
+    if observed is not None:
+        to_surface = np.minimum(to_truth, np.abs(p[:, 2] - ground))
+        out["observed_chamfer"] = 0.5 * (float(to_surface.mean()) + float(to_mesh[observed].mean()))
+        out.update({f"observed_{k}": v for k, v in _f_scores(to_surface, to_mesh[observed], diagonal).items()})
+    return out
+
+
+def _f_scores(to_truth, to_mesh, diagonal) -> dict:
+    """F-scores at 0.5 % and 1 % of ``diagonal``: precision, the share of the mesh's samples that close to the
+    truth (``to_truth``); recall, the share of the truth's samples that close to the mesh (``to_mesh``)."""
+    out = {}
+    for percent in (0.5, 1):
         precision, recall = float((to_truth <= percent / 100 * diagonal).mean()), float((to_mesh <= percent / 100 * diagonal).mean())
         out[f"f_{percent:g}"] = 2 * precision * recall / max(precision + recall, 1e-12)
     return out
