@@ -115,7 +115,7 @@ def cmd_extract_mesh(args) -> None:
     if args.bounds is not None:  # the file's frame -> world: the box around the corners as the splat object places them
         bounds = workflows.placed_bounds(args.bounds[:3], args.bounds[3:], workflows.object_matrix(splats))
     job = workflows.MeshExtraction(splats, method=args.method, cameras=cameras, resolution=args.resolution, cleanup=args.cleanup,
-                                   min_opacity=args.min_opacity, max_points=args.max_points, trim=args.trim, bounds=bounds)
+                                   faces=args.faces, min_opacity=args.min_opacity, max_points=args.max_points, trim=args.trim, bounds=bounds)
     try:
         job.compute(ProgressLine("extract mesh"))
     except KeyboardInterrupt:
@@ -313,6 +313,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="fusion: the box to mesh, in the file's frame (default: the surfaces the views share)")
     p.add_argument("--cleanup", type=float, default=0.01, metavar="F",
                    help="drop pieces with fewer faces than this fraction of the largest piece's, 0 keeps all (default 0.01)")
+    p.add_argument("--faces", type=int, default=0, metavar="N", help="at most N triangles, by quadric vertex clustering (default 0: as extracted)")
     p.add_argument("--min-opacity", type=float, default=0.01, help="poisson: leave out splats less opaque than this (default 0.01)")
     p.add_argument("--max-points", type=int, default=200000, help="poisson: surface samples used at most, 0 for all (default 200000)")
     p.add_argument("--trim", type=float, default=None, help=f"poisson: remove surface farther than this many voxels from any splat, 0 for off (default {workflows.DEFAULT_TRIM:g})")

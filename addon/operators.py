@@ -811,6 +811,7 @@ class MLX3D_OT_extract_mesh(_ModalWork, bpy.types.Operator):
                             description="Voxels along the longest side of the surface (fusion) or of the grid (Poisson); memory and time grow with its cube")
     cleanup: FloatProperty(name="Cleanup", default=0.01, min=0.0, max=1.0,
                            description="Drop pieces with fewer faces than this fraction of the largest piece's (0: keep every piece)")
+    faces: IntProperty(name="Faces", default=0, min=0, description="At most this many triangles, fewer where the mesh is simplified (0: as extracted)")
     min_opacity: FloatProperty(name="Min opacity", default=0.01, min=0.0, max=1.0, description="Poisson: leave out splats less opaque than this")
     max_points: IntProperty(name="Max points", default=200000, min=0, description="Poisson: use at most this many splats as surface samples, the most important first (0: all)")
     trim: FloatProperty(name="Trim", default=workflows.DEFAULT_TRIM, min=0.0, description="Poisson: remove surface farther than this many voxels from any splat (0: off)")
@@ -847,7 +848,7 @@ class MLX3D_OT_extract_mesh(_ModalWork, bpy.types.Operator):
 
     def _job(self, context):
         return workflows.MeshExtraction(context.active_object, method=self.method.lower(), cameras=self._cameras(),
-                                        resolution=self.resolution, cleanup=self.cleanup, min_opacity=self.min_opacity,
+                                        resolution=self.resolution, cleanup=self.cleanup, faces=self.faces, min_opacity=self.min_opacity,
                                         max_points=self.max_points, trim=self.trim, bounds=self._bounds(context))
 
     def _add(self, context, job):

@@ -31,6 +31,7 @@ class MLX3D_PG_settings(bpy.types.PropertyGroup):
                                           "standing on a floor; none: the surfaces the views share")
     mesh_resolution: IntProperty(name="Resolution", default=128, min=8, max=512, description="Voxels along the longest side of the surface (fusion) or of the grid (Poisson)")
     mesh_cleanup: FloatProperty(name="Cleanup", default=0.01, min=0.0, max=1.0, description="Drop pieces with fewer faces than this fraction of the largest piece's (0: keep every piece)")
+    mesh_faces: IntProperty(name="Faces", default=0, min=0, description="At most this many triangles (0: as extracted)")
     mesh_min_opacity: FloatProperty(name="Min opacity", default=0.01, min=0.0, max=1.0, description="Poisson: leave out splats less opaque than this")
     mesh_max_points: IntProperty(name="Max points", default=200000, min=0, description="Poisson: surface samples used at most (0: all)")
     mesh_trim: FloatProperty(name="Trim", default=workflows.DEFAULT_TRIM, min=0.0, description="Poisson: remove surface farther than this many voxels from any splat (0: off)")
@@ -150,7 +151,7 @@ class VIEW3D_PT_mlx3d_splats(_SplatsTab, bpy.types.Panel):
 
         _section(layout, "Compact", settings, operators.MLX3D_OT_compact, "MOD_DECIM",
                  {"max_gaussians": "compact_max", "min_opacity": "compact_min_opacity", "sh_degree": "compact_sh"})
-        fields = {"method": "mesh_method", "resolution": "mesh_resolution", "cleanup": "mesh_cleanup"}
+        fields = {"method": "mesh_method", "resolution": "mesh_resolution", "cleanup": "mesh_cleanup", "faces": "mesh_faces"}
         if settings.mesh_method == "POISSON":
             fields.update(min_opacity="mesh_min_opacity", max_points="mesh_max_points", trim="mesh_trim")
         col = layout.column(align=True)

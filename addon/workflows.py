@@ -22,7 +22,7 @@ from mlx3d.floaters import radius_outliers, statistical_outliers
 from mlx3d.io import FORMATS, detect_format, format_for_path
 from mlx3d.io import read_splats as read_splat_file
 from mlx3d.io import write_splats as write_splat_file
-from mlx3d.meshing import DEFAULT_TRIM, MeshingError, SurfaceMesh, keep_large_components, reconstruct_surface
+from mlx3d.meshing import DEFAULT_TRIM, MeshingError, SurfaceMesh, keep_large_components, reconstruct_surface, simplify
 from mlx3d.splatting import GaussianModel, merge_splats
 
 from .camera import camera_from_blender
@@ -326,7 +326,8 @@ class MeshExtraction(WorkerJob):
     - ``compute(progress)`` renders what is left (main thread) and meshes:
       ``mlx3d.meshing.fuse_depth_maps`` of the views, brought back to the
       object's frame, or ``reconstruct_surface`` of the surfels; then drops
-      pieces under ``cleanup`` times the largest (``keep_large_components``).
+      pieces under ``cleanup`` times the largest (``keep_large_components``)
+      and, with ``faces``, simplifies to at most that many (``simplify``).
       ``start()`` runs it on a worker thread once every view is rendered
       (``work()`` refuses otherwise); ``running`` and ``progress`` (done,
       total; fusion: one per view rendered, then two per view fused, total 3 x
@@ -337,7 +338,7 @@ class MeshExtraction(WorkerJob):
     Options as ``extract_mesh``.
     """
 
-    def __init__(self, obj, *, method="fusion", cameras=None, resolution=128, cleanup=0.01, min_opacity=0.01,
+    def __init__(self, obj, *, method="fusion", cameras=None, resolution=128, cleanup=0.01, faces=0, min_opacity=0.01,
                  max_points=200000, trim=None, camera_centres=None, name=None, collection=None, padding=0.1, bounds=None):
         if obj is None or not is_splat_object(obj):
             what = "no active object" if obj is None else f"'{obj.name}' is not a splat object"
@@ -353,6 +354,9 @@ class MeshExtraction(WorkerJob):
         self.cleanup = float(cleanup or 0.0)
         if not 0.0 <= self.cleanup <= 1.0:
             raise MeshingError(f"cleanup must be a fraction in [0, 1], got {cleanup!r}")
+        self.faces = int(faces or 0)
+        if self.faces != (faces or 0) or self.faces < 0:
+            raise MeshingError(f"faces must be a whole number of triangles (0: as extracted), got {faces!r}")
         if len(obj.data.points) == 0:
             raise MeshingError(f"'{obj.name}' holds no splats; nothing to mesh")
         self.bounds = None
@@ -476,6 +480,8 @@ class MeshExtraction(WorkerJob):
             surface = reconstruct_surface(*self.surfels, progress=self._report(progress), **self.options)
         if self.cleanup:
             surface = keep_large_components(surface, self.cleanup)
+        if self.faces:
+            surface = simplify(surface, self.faces)
         self._check_cancel()  # a cancel that came after the last report still counts
         self.progress = (self.total, self.total) if self.method == "fusion" else (1, 1)
         self.surface = surface
@@ -588,7 +594,7 @@ def new_mesh_object(name, vertices, faces, colors=None, *, collection, parent=No
     return obj
 
 
-def extract_mesh(obj, *, method="fusion", cameras=None, resolution=128, cleanup=0.01, min_opacity=0.01, max_points=200000,
+def extract_mesh(obj, *, method="fusion", cameras=None, resolution=128, cleanup=0.01, faces=0, min_opacity=0.01, max_points=200000,
                  trim=None, name=None, collection=None, camera_centres=None, bounds=None, progress=None):
     """A triangle mesh of the splats' surface as a new mesh object under the splat object.
 
@@ -608,6 +614,8 @@ def extract_mesh(obj, *, method="fusion", cameras=None, resolution=128, cleanup=
     smallest scale). resolution: voxels along the longest side of the seen
     surface (fusion) or of the grid (Poisson). cleanup: pieces with fewer
     faces than this fraction of the largest piece's are dropped (0 keeps all).
+    faces: at most this many triangles (``mlx3d.meshing.simplify``; 0: as
+    extracted).
     bounds: fusion only, (2, 3) min and max world corners of the volume to
     mesh (``box_world_bounds`` of a box object), e.g. around an object on a
     floor; default: the surfaces the views share
@@ -623,7 +631,7 @@ def extract_mesh(obj, *, method="fusion", cameras=None, resolution=128, cleanup=
     not a camera) raises a ``ValueError`` (``MeshingError``,
     ``SplatObjectError``) and adds nothing.
     """
-    job = MeshExtraction(obj, method=method, cameras=cameras, resolution=resolution, cleanup=cleanup, min_opacity=min_opacity,
+    job = MeshExtraction(obj, method=method, cameras=cameras, resolution=resolution, cleanup=cleanup, faces=faces, min_opacity=min_opacity,
                          max_points=max_points, trim=trim, camera_centres=camera_centres, name=name, collection=collection,
                          bounds=bounds)
     job.compute(progress)

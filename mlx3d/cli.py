@@ -428,6 +428,11 @@ def cmd_mesh(args) -> None:
             from .meshing import keep_large_components
 
             mesh = keep_large_components(mesh, args.cleanup)
+    if args.faces:
+        from .meshing import simplify
+
+        with step(f"simplifying {len(mesh.faces):,} faces to at most {args.faces:,}"):
+            mesh = simplify(mesh, args.faces)
     mesh.save_ply(args.out)
     print(f"wrote {args.out}: {len(mesh.vertices):,} vertices, {len(mesh.faces):,} faces, area {mesh.area():.4g}, watertight {mesh.is_watertight()}")
 
@@ -603,6 +608,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="fusion: the box to mesh, in scene units (default: the surfaces the views share)")
     p.add_argument("--cleanup", type=float, default=0.01, metavar="FRACTION",
                    help="drop pieces of fewer faces than this fraction of the largest piece's (default 0.01; 0 keeps all)")
+    p.add_argument("--faces", type=int, default=0, metavar="N",
+                   help="at most N triangles, by quadric vertex clustering (default 0: as extracted)")
     p.add_argument("--padding", type=float, default=0.1, help="poisson: grid margin, as a fraction of the bounding box's largest side")
     p.add_argument("--min-opacity", type=float, default=0.01, help="poisson: ignore Gaussians below this opacity")
     p.add_argument("--max-points", type=int, default=200_000, help="poisson: keep the N largest opaque discs (default 200000)")

@@ -167,6 +167,14 @@ def test_mesh_writes_a_coloured_mesh_and_refuses_transparent_models(tmp_path, ca
         mesh = read_mesh_ply(out)
         assert np.abs(np.linalg.norm(mesh.vertices, axis=1) - 1.0).max() < 2 * 2.4 / 48
         np.testing.assert_allclose(mesh.colors.mean(0), [0.9, 0.2, 0.1], atol=2 / 255)
+        if method == "poisson":  # --faces: at most that many, on the same ball, in the same colour
+            assert main(["mesh", str(tmp_path / "ball.ply"), "--out", str(out), "--method", method, "--resolution", "48",
+                         "--data", str(tmp_path / "data"), "--faces", "600"]) == 0
+            assert "faces to at most 600" in capsys.readouterr().err
+            small = read_mesh_ply(out)
+            assert 480 <= len(small.faces) <= 600 < len(mesh.faces)
+            assert np.abs(np.linalg.norm(small.vertices, axis=1) - 1.0).max() < 2 * 2.4 / 48
+            np.testing.assert_allclose(small.colors.mean(0), [0.9, 0.2, 0.1], atol=2 / 255)
         if method == "fusion":  # a box given by hand: the ball's cap inside it, cut at its wall
             assert main(["mesh", str(tmp_path / "ball.ply"), "--out", str(out), "--resolution", "48",
                          "--data", str(tmp_path / "data"), "--bounds", "-1.2", "-1.2", "0.3", "1.2", "1.2", "1.2"]) == 0

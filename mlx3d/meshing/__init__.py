@@ -5,6 +5,8 @@
 - :func:`fuse_depth_maps`: depth maps from known cameras fused into a
   truncated signed distance volume and meshed where it was seen
   (:mod:`.fusion`; :func:`keep_large_components` drops small islands);
+- :func:`simplify`: at most a target number of faces (quadric vertex
+  clustering, :mod:`.simplify`);
 - :func:`marching_tetrahedra`: watertight isosurface of a regular grid;
 - :class:`SurfaceMesh`: indexed triangle mesh (area, volume, watertightness,
   normals, PLY output via :mod:`mlx3d.io.mesh_ply`);
@@ -18,6 +20,7 @@ from .fusion import DepthView, fuse_depth_maps, keep_large_components
 from .isosurface import marching_tetrahedra
 from .mesh import MeshingError, SurfaceMesh
 from .poisson import DEFAULT_TRIM, reconstruct_surface
+from .simplify import simplify
 
 __all__ = [
     "DEFAULT_TRIM",
@@ -28,4 +31,5 @@ __all__ = [
     "keep_large_components",
     "marching_tetrahedra",
     "reconstruct_surface",
+    "simplify",
 ]

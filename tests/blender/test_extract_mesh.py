@@ -376,6 +376,29 @@ def test_cleanup_drops_small_pieces(extension, clean_scene, tmp_path):
         assert (np.linalg.norm(vertices, axis=1) < 1.2).sum() > 500
 
 
+def test_faces_caps_the_triangles(extension, clean_scene, tmp_path):
+    """*Faces* simplifies the extracted mesh to at most that many triangles, which stay on the sphere; a count that
+    is not a whole number of triangles is refused before anything is added."""
+    from mlx3d.meshing import MeshingError
+
+    workflows = extension.addon.workflows
+    splats = import_splats(tmp_path / "sphere.ply", transform=False)
+    full, _ = workflows.extract_mesh(splats, method="poisson", resolution=RESOLUTION, name="full")
+    full_vertices, full_faces = mesh_arrays(full)
+    assert len(full_faces) > 2000
+    bpy.context.view_layer.objects.active = splats
+    assert bpy.ops.mlx3d.extract_mesh(method="POISSON", resolution=RESOLUTION, faces=800) == {"FINISHED"}
+    vertices, faces = mesh_arrays(bpy.context.scene.objects["sphere mesh"])
+    assert 0.8 * 800 <= len(faces) <= 800
+    error = np.abs(np.linalg.norm(full_vertices, axis=1) - 1.0).max()
+    assert np.abs(np.linalg.norm(vertices, axis=1) - 1.0).max() < error + 0.02
+    before = scene_state()
+    for bad in (-1, 2.5):
+        with pytest.raises(MeshingError, match="faces must be a whole number"):
+            workflows.extract_mesh(splats, method="poisson", resolution=RESOLUTION, faces=bad)
+    assert scene_state() == before
+
+
 # ------------------------------------------------------------------ bad input leaves the scene alone
 def test_non_splat_active_object_is_refused(extension, clean_scene, tmp_path):
     workflows = extension.addon.workflows
@@ -576,10 +599,10 @@ def test_panel_mesh_section_passes_its_settings(extension, clean_scene):
         return [entry[1] for entry in log[start:end] if entry[0] == "prop"], op
 
     assert settings.mesh_method == "FUSION" and settings.mesh_cameras is None and settings.mesh_resolution == 128
-    settings.mesh_resolution, settings.mesh_cleanup = 200, 0.05
+    settings.mesh_resolution, settings.mesh_cleanup, settings.mesh_faces = 200, 0.05, 3000
     props, op = draw()
-    assert props == ["mesh_method", "mesh_cameras", "mesh_box", "mesh_resolution", "mesh_cleanup"]  # no Poisson-only setting
-    assert (op.method, op.cameras, op.box, op.resolution, op.cleanup) == ("FUSION", "", "", 200, pytest.approx(0.05))
+    assert props == ["mesh_method", "mesh_cameras", "mesh_box", "mesh_resolution", "mesh_cleanup", "mesh_faces"]  # no Poisson-only setting
+    assert (op.method, op.cameras, op.box, op.resolution, op.cleanup, op.faces) == ("FUSION", "", "", 200, pytest.approx(0.05), 3000)
     assert not hasattr(op, "min_opacity")
     settings.mesh_cameras = camera_collection("shots", [(0.0, -4.0, 1.0)])
     settings.mesh_box = bpy.data.objects.new("crate", bpy.data.meshes.new("crate"))
@@ -589,7 +612,7 @@ def test_panel_mesh_section_passes_its_settings(extension, clean_scene):
     settings.mesh_method = "POISSON"
     settings.mesh_min_opacity, settings.mesh_max_points, settings.mesh_trim = 0.2, 5000, 1.5
     props, op = draw()
-    assert props == ["mesh_method", "mesh_cameras", "mesh_resolution", "mesh_cleanup", "mesh_min_opacity", "mesh_max_points", "mesh_trim"]
+    assert props == ["mesh_method", "mesh_cameras", "mesh_resolution", "mesh_cleanup", "mesh_faces", "mesh_min_opacity", "mesh_max_points", "mesh_trim"]
     assert (op.method, op.cameras, op.box, op.resolution, op.cleanup) == ("POISSON", "shots", "", 200, pytest.approx(0.05))
     assert (op.min_opacity, op.max_points, op.trim) == (pytest.approx(0.2), 5000, pytest.approx(1.5))
 
@@ -691,9 +714,9 @@ def test_headless_parser_knows_the_methods_and_the_alias(extension, capsys):
     parser = headless.build_parser()
     for name in ("extract-mesh", "mesh"):
         args = parser.parse_args([name, "in.ply", "--out", "out.ply"])
-        assert args.func is headless.cmd_extract_mesh and (args.method, args.cleanup, args.cameras_from) == ("fusion", 0.01, None)
-    args = parser.parse_args(["mesh", "in.ply", "--out", "out.ply", "--method", "poisson", "--cleanup", "0.2", "--cameras-from", "data"])
-    assert (args.method, args.cleanup, args.cameras_from) == ("poisson", 0.2, "data")
+        assert args.func is headless.cmd_extract_mesh and (args.method, args.cleanup, args.faces, args.cameras_from) == ("fusion", 0.01, 0, None)
+    args = parser.parse_args(["mesh", "in.ply", "--out", "out.ply", "--method", "poisson", "--cleanup", "0.2", "--faces", "5000", "--cameras-from", "data"])
+    assert (args.method, args.cleanup, args.faces, args.cameras_from) == ("poisson", 0.2, 5000, "data")
     with pytest.raises(SystemExit) as exit_info:
         parser.parse_args(["extract-mesh", "in.ply", "--out", "out.ply", "--method", "marching"])
     assert exit_info.value.code == 2 and "invalid choice: 'marching'" in capsys.readouterr().err
