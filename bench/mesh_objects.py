@@ -2,7 +2,7 @@
 
     python bench/mesh_objects.py [--objects suzanne,bumpy_sphere,torus_knot] [--methods vanilla,2dgs]
                                  [--extract fusion,poisson] [--steps 7000] [--size 640] [--factor 2]
-                                 [--resolution 128] [--sparse-depth 0] [--background-points N]
+                                 [--resolution 128] [--sparse-depth 0] [--background-points N] [--faces N]
                                  [--data bench_data/mesh_objects] [--markdown docs/benchmarks/mesh_objects.md]
 
 Each object (a subdivided Suzanne, a sphere displaced by a noise texture, a
@@ -27,7 +27,8 @@ per method (``--sparse-depth W``: with the solve's points as depth,
 ``--background-points N``: a backdrop of N points, 'METHOD+backdropN'). Each model is meshed by each extraction method at
 ``--resolution`` (fusion from the training cameras, of their median depth,
 or with ``fusion-expected`` of their expected depth; Poisson with normals
-towards them), the mesh is taken into Blender's frame by the similarity that
+towards them; with ``--faces N`` each mesh is also simplified to at most N
+faces, ``mlx3d.meshing.simplify``, rows 'EXTRACTION+facesN'), the mesh is taken into Blender's frame by the similarity that
 best maps the solved cameras onto the true ones, and compared with the
 object's own triangles by ``bench/mesh_quality.py``'s measures (Chamfer and
 its two directions as percentages of the true mesh's bounding-box diagonal,
@@ -326,6 +327,21 @@ def extracted_mesh(extraction: str, args, data: str, model: str, mesh: str) -> d
     return extracted
 
 
+def simplified_mesh(mesh: str, faces: int, extracted: dict) -> tuple:
+    """(path, figures) of ``mesh`` simplified to at most ``faces`` (``mlx3d.meshing.simplify``), its extraction
+    figures with the simplification's time added."""
+    from mlx3d.io.mesh_ply import read_mesh_ply
+    from mlx3d.meshing import simplify
+
+    source = read_mesh_ply(mesh)
+    t0 = time.perf_counter()
+    small = simplify(source, faces)
+    seconds = time.perf_counter() - t0
+    path = mesh[:-4] + f"_faces{faces}.ply"
+    small.save_ply(path)
+    return path, {**extracted, "extract_s": extracted["extract_s"] + seconds, "simplify_s": seconds, "faces": len(small.faces)}
+
+
 def _child(kind: str, value: str, args, **extra) -> dict:
     cmd = [sys.executable, os.path.abspath(__file__), f"--child-{kind}", value, "--data-dir", extra["data_dir"],
            "--model", extra["model"], "--steps", str(args.steps), "--resolution", str(args.resolution),
@@ -527,6 +543,8 @@ def main() -> int:
                         help="TrainerConfig.lambda_sparse_depth: the solve's points as depth (default 0: off)")
     parser.add_argument("--background-points", type=int, default=None, metavar="N",
                         help="TrainerConfig.init_background_points: a backdrop of N points (default: the method's)")
+    parser.add_argument("--faces", type=int, default=0, metavar="N",
+                        help="also measure each mesh simplified to at most N faces (rows 'EXTRACTION+facesN')")
     parser.add_argument("--retrain", action="store_true", help="train and mesh every model again, even where that was done")
     parser.add_argument("--child-train", help=argparse.SUPPRESS)
     parser.add_argument("--child-extract", help=argparse.SUPPRESS)
@@ -580,15 +598,19 @@ def main() -> int:
             for extraction in extractions:
                 mesh = os.path.join(folder, f"{method}_{args.steps}_{extraction}_{args.resolution}.ply")
                 extracted = extracted_mesh(extraction, args, data, model, mesh)
-                row = {"object": name, "method": method, "steps": args.steps, "extraction": extraction,
-                       "resolution": args.resolution, "photo_size": list(args.dims), **trained, **extracted,
-                       **measure(folder, os.path.basename(mesh)[:-4], mesh, matrix, truth, crop=name in ON_GROUND, refine=refine,
-                                  observed=observed),
-                       **code,
-                       "date": datetime.date.today().isoformat(), "machine": machine_line(),
-                       "load_median": load.summary().get("median", float("nan"))}
-                rows.append(row)
-                print(table([row]).splitlines()[-1], file=sys.stderr, flush=True)
+                meshes = [(extraction, mesh, extracted)]
+                if args.faces:  # 'fusion+faces30000': the same mesh simplified
+                    meshes.append((f"{extraction}+faces{args.faces}", *simplified_mesh(mesh, args.faces, extracted)))
+                for label, path, figures in meshes:
+                    row = {"object": name, "method": method, "steps": args.steps, "extraction": label,
+                           "resolution": args.resolution, "photo_size": list(args.dims), **trained, **figures,
+                           **measure(folder, os.path.basename(path)[:-4], path, matrix, truth, crop=name in ON_GROUND, refine=refine,
+                                     observed=observed),
+                           **code,
+                           "date": datetime.date.today().isoformat(), "machine": machine_line(),
+                           "load_median": load.summary().get("median", float("nan"))}
+                    rows.append(row)
+                    print(table([row]).splitlines()[-1], file=sys.stderr, flush=True)
         save_results(results, [r for r in rows if r["object"] == name], {name: info})  # after every object: a run stopped early keeps it
         if args.markdown:
             # the picture shows every extraction measured for the object, this run's and earlier ones
