@@ -118,7 +118,7 @@ class TrainerConfig:
     lambda_bilateral_tv: float = 10.0
     # surfels and geometry regularisers (see mlx3d.training.geometry); None: the method's default
     two_d_thickness: float = 1e-3  # '2dgs': largest third scale, as a fraction of the scene extent
-    lambda_2d_depth_variance: float | None = None  # '2dgs': 10, else 0
+    lambda_2d_depth_variance: float | None = None  # '2dgs': 3, else 0
     lambda_2d_normal_consistency: float | None = None  # '2dgs': 0.05, else 0
     geometry_min_alpha: float = 0.5  # the regularisers apply where the render's alpha reaches this
     geometry_from: int = 1000  # and from this step on
@@ -182,7 +182,7 @@ class TrainerConfig:
         if self.max_gaussians is not None and self.max_gaussians < 2:
             raise ValueError(f"max_gaussians must be >= 2 (or None), got {self.max_gaussians}")
         if self.lambda_2d_depth_variance is None:
-            self.lambda_2d_depth_variance = 10.0 if surfels else 0.0
+            self.lambda_2d_depth_variance = 3.0 if surfels else 0.0
         if self.lambda_2d_normal_consistency is None:
             self.lambda_2d_normal_consistency = 0.05 if surfels else 0.0
         if self.lambda_2d_depth_variance < 0 or self.lambda_2d_normal_consistency < 0:
