@@ -8,9 +8,11 @@ noise, a bilateral grid and 2DGS surfels with their geometry losses between
 them. The file was written before
 batches of views existed; the test checks that batch size 1 on one process
 still reproduces it bit for bit. Rerunning this script overwrites it with the
-current trainer's results, so only do that on purpose:
+current trainer's results, so only do that on purpose; naming runs rewrites only those, keeping the others:
 
-    .venv/bin/python tests/data/make_train_frozen.py
+    .venv/bin/python tests/data/make_train_frozen.py [RUN ...]
+
+The surfels run was rewritten when the 2DGS depth variance became that of inverse depth (weight 3).
 """
 
 from __future__ import annotations
@@ -79,11 +81,22 @@ def run(name: str, folder: Path, ranks=None, progress=None, **overrides) -> dict
     return {k: np.array(v) for k, v in trainer.model.params.items()}, trainer
 
 
-def main() -> int:
+def main(names) -> int:
     from mlx3d import native
 
-    data = {"lanes": np.int32(native.core().rasterizer_simd_lanes())}
-    for name in RUNS:
+    unknown = sorted(set(names) - set(RUNS))
+    if unknown:
+        print(f"no frozen run named {', '.join(unknown)} (the runs: {', '.join(RUNS)})", file=sys.stderr)
+        return 2
+    lanes = np.int32(native.core().rasterizer_simd_lanes())
+    data = {"lanes": lanes}
+    if names:  # the other runs as written
+        kept = np.load(HERE / "train_frozen.npz")
+        if int(kept["lanes"]) != lanes:
+            print("the file was written with another SIMD width: rewrite every run", file=sys.stderr)
+            return 2
+        data.update({k: kept[k] for k in kept.files if k.split("/")[0] not in names})
+    for name in names or RUNS:
         with tempfile.TemporaryDirectory() as tmp:
             params, _ = run(name, Path(tmp))
         for k, v in params.items():
@@ -95,4 +108,4 @@ def main() -> int:
 
 if __name__ == "__main__":
     sys.path.insert(0, str(HERE.parent.parent))
-    sys.exit(main())
+    sys.exit(main(sys.argv[1:]))
