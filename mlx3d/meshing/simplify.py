@@ -40,8 +40,7 @@ def simplify(mesh: SurfaceMesh, target_faces: int) -> SurfaceMesh:
     if len(mesh.faces) <= target:
         return mesh
     vertices = mesh.vertices.astype(np.float64)
-    used = np.unique(mesh.faces)
-    lo, hi = vertices[used].min(axis=0), vertices[used].max(axis=0)
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)  # every vertex in a cell of the grid
     quadrics = _face_quadrics(vertices, mesh.faces)
     edges = np.linalg.norm(vertices[mesh.faces] - vertices[np.roll(mesh.faces, 1, axis=1)], axis=-1)
     small = max(float(np.median(edges)) * 0.5, 1e-12)  # about as fine as the mesh: keeps almost every face
