@@ -45,7 +45,10 @@ mesh of that capture is moved by the same similarity, with the scale it
 found. It corrects the solve's frame, which all extractions share, and
 leaves each extraction's own bias (a surface inside or outside the true
 one) in its numbers: the first numbers are what a user gets, the second
-the meshing alone.
+the meshing alone. An object on a ground is also measured as DTU's
+evaluation counts (``observed_...``, the measure the page judges it by):
+the ground is true surface too, and only the truth a training photo sees
+(``observed_samples``) is to be covered.
 
 Captures, trained models and meshes stay in ``--data`` (git-ignored); a
 capture is rebuilt only when its settings changed, and a model is trained
@@ -497,8 +500,9 @@ def write_page(path, results) -> None:
              "its cameras solved from the photos by `mlx3d poses`, trained without points and meshed from the photos "
              "read smaller by the factor in the table (`--factor`); the meshes are "
              "compared with the object's own triangles after the similarity that maps the solved cameras onto Blender's "
-             "(`python bench/mesh_objects.py`; how each measure is defined is in its docstring). The default route of "
-             "`mlx3d train` and `mlx3d mesh` is vanilla training, then fusion.", "",
+             "(`python bench/mesh_objects.py`; how each measure is defined is in its docstring). The route for meshes "
+             "([Surface meshes](../guides/meshes.md); in Blender *Train Splats* with 2DGS, then *Extract Mesh*) is "
+             "`mlx3d train --method 2dgs`, then `mlx3d mesh --data`, which fuses the rendered depth.", "",
              "Measured on:", ""]
     lines += [f"- {date}, commit `{commit}`: {machine}; 1-minute load average during the runs: median {min(loads):.1f} "
               f"to {max(loads):.1f} on {os.cpu_count()} cores" for (date, machine, commit), loads in sorted(runs.items())]
@@ -513,9 +517,11 @@ def write_page(path, results) -> None:
     lines += ["", table(rows), ""]
     observed = observed_table(rows)
     if observed:
-        lines += ["Objects on a ground, measured as DTU's evaluation counts: the ground (true surface too) is as near as the "
-                  "truth for the mesh's accuracy, and completeness covers only the truth a training photo sees (the rest, "
-                  "e.g. an underside facing the ground, no photo shows):", "", observed, ""]
+        lines += ["Objects on a ground, measured as DTU's evaluation counts, which is how this page judges them: the ground "
+                  "(true surface too) is as near as the truth for the mesh's accuracy, and completeness covers only the truth a "
+                  "training photo sees. The rest (here the object's underside, facing the ground) no photo shows, and fusion "
+                  "leaves what no view saw empty by design, so counting it would charge every mesh for it alike:", "",
+                  observed, ""]
     lines += ["<!-- notes:results -->", page_notes(path, ["results"])["results"], "<!-- /notes:results -->", ""]
     for name in sorted(captured, key=lambda n: OBJECTS.index(n) if n in OBJECTS else 99):
         picture = os.path.join(PICTURES, f"{name}.png")
