@@ -590,7 +590,8 @@ def build_parser() -> argparse.ArgumentParser:
     reading(p)
 
     p = add("mesh", cmd_mesh, "Extract a triangle mesh (PLY with vertex colours): by fusing the depth the splats render "
-            "from the training views (--method fusion) or by Poisson reconstruction from the Gaussians as oriented discs.")
+            "from the training views (--method fusion) or by Poisson reconstruction from the Gaussians as oriented discs. "
+            "A model trained with `mlx3d train --method 2dgs` gives the closest mesh.")
     p.add_argument("model", metavar="MODEL")
     p.add_argument("--out", required=True, metavar="MESH.ply")
     p.add_argument("--method", choices=("fusion", "poisson"), default="fusion",
